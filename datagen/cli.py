@@ -1,0 +1,147 @@
+"""The ``datagen`` command line: sample, verify, preview, info."""
+from __future__ import annotations
+
+import argparse
+import errno
+import json
+import sys
+
+from .errors import UserError
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line, non-zero exit
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def _background(text: str):
+    named = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0), "grey": (0.5, 0.5, 0.5)}
+    if text in named:
+        return named[text]
+    try:
+        rgb = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        rgb = ()
+    if len(rgb) != 3 or not all(0.0 <= v <= 1.0 for v in rgb):
+        raise argparse.ArgumentTypeError("use white, black, grey or R,G,B with values in [0, 1]")
+    return rgb
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="datagen", description="Build multiview head datasets from head generators.")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    s = sub.add_parser("sample", help="render subjects into WebDataset shards")
+    s.add_argument("--gan", default="procedural", help="generator: procedural (default), eg3d, panohead, spherehead")
+    s.add_argument("--checkpoint", help="generator checkpoint file (GAN generators)")
+    s.add_argument("--protocol", default="360", help="camera protocol: frontal or 360")
+    s.add_argument("--subjects", type=int, default=16, help="number of subjects")
+    s.add_argument("--resolution", type=int, default=128, help="image size in pixels (square)")
+    s.add_argument("--views", type=int, default=32, help="views per subject (paper: 32)")
+    s.add_argument("--seed", type=int, default=0, help="dataset seed; every draw derives from (seed, subject)")
+    s.add_argument("--shard-size", type=int, default=8, help="subjects per shard")
+    s.add_argument("--out", required=True, help="output dataset folder")
+    s.add_argument("--workers", type=int, default=1, help="parallel worker processes on this machine")
+    s.add_argument("--backend", default="local", choices=("local", "ray"), help="run shard tasks here or on Ray")
+    s.add_argument("--ray-address", help="address of an existing Ray cluster (default: RAY_ADDRESS or a local one)")
+    s.add_argument("--shard-index", type=int, default=0, help="this job's part K of --num-shards (array jobs)")
+    s.add_argument("--num-shards", type=int, default=1, help="split the shards over N jobs; job K writes shards s with s %% N == K")
+    s.add_argument("--resume", action="store_true", help="skip complete shards, redo partial ones")
+    s.add_argument("--defect-rate", type=float, default=None, help="procedural: fraction of subjects with an injected defect (default 0.04)")
+    s.add_argument("--background", type=_background, default=None, help="procedural: white (default), black, grey or R,G,B")
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    v = sub.add_parser("verify", help="check checksums, decoding, counts and metadata of a dataset")
+    v.add_argument("dataset")
+    v.add_argument("--quiet", action="store_true")
+
+    pv = sub.add_parser("preview", help="write a contact sheet PNG of one subject's views")
+    pv.add_argument("dataset")
+    pv.add_argument("--subject", required=True, help="subject number (e.g. 3) or id (subj00000003)")
+    pv.add_argument("--out", required=True, help="PNG to write")
+    pv.add_argument("--columns", type=int, default=8)
+    pv.add_argument("--mask-depth", action="store_true", help="show mask and depth beside each view")
+
+    i = sub.add_parser("info", help="summarize a dataset")
+    i.add_argument("dataset")
+    i.add_argument("--json", action="store_true", help="print JSON")
+    return p
+
+
+def _sample(args) -> int:
+    from .pipeline import JobSpec, run_sample, software_info
+
+    options = {}
+    if args.defect_rate is not None:
+        if not 0.0 <= args.defect_rate <= 1.0:
+            raise UserError("--defect-rate must be between 0 and 1")
+        options["defect_rate"] = args.defect_rate
+    if args.background is not None:
+        options["background"] = list(args.background)
+    spec = JobSpec(out=args.out, gan=args.gan, checkpoint=args.checkpoint, generator_options=options,
+                   protocol=args.protocol, subjects=args.subjects, resolution=args.resolution, views=args.views,
+                   seed=args.seed, shard_size=args.shard_size, software=software_info())
+    summary = run_sample(spec, workers=args.workers, backend=args.backend, ray_address=args.ray_address,
+                         shard_index=args.shard_index, num_shards=args.num_shards, resume=args.resume,
+                         progress=not args.quiet)
+    rate = summary["images"] / summary["seconds"] if summary["seconds"] > 0 else 0.0
+    print(f"wrote {summary['shards_written']} shard(s), skipped {summary['shards_skipped']} complete; "
+          f"{summary['images']} images in {summary['seconds']:.1f} s ({rate:.1f} img/s) -> {args.out}")
+    return 0
+
+
+def _verify(args) -> int:
+    from .verify import verify_dataset
+
+    report = verify_dataset(args.dataset, progress=not args.quiet)
+    for line in report["problems"]:
+        print(f"problem: {line}")
+    for path in report["stray"]:
+        print(f"note: leftover temporary file {path} (an interrupted run; --resume removes it)")
+    status = "OK" if not report["problems"] else "FAILED"
+    print(f"{status}: {report['complete']}/{report['shards']} shards complete and valid, {report['subjects']} subjects")
+    return 0 if not report["problems"] else 1
+
+
+def _preview(args) -> int:
+    from .preview import write_contact_sheet
+
+    out = write_contact_sheet(args.dataset, args.subject, args.out, args.columns, args.mask_depth)
+    print(f"wrote {out}")
+    return 0
+
+
+def _info(args) -> int:
+    from .preview import dataset_info
+
+    info = dataset_info(args.dataset)
+    if args.json:
+        print(json.dumps(info, indent=1, sort_keys=True))
+    else:
+        for k, val in info.items():
+            print(f"{k:>18}: {val}")
+    return 0
+
+
+COMMANDS = {"sample": _sample, "verify": _verify, "preview": _preview, "info": _info}
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return COMMANDS[args.command](args)
+    except UserError as e:
+        print(f"datagen {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"datagen {args.command}: interrupted; rerun with --resume to continue", file=sys.stderr)
+        return 130
+    except OSError as e:
+        if e.errno == errno.ENOSPC:
+            print(f"datagen {args.command}: error: disk full ({e.filename or ''})", file=sys.stderr)
+            return 2
+        raise
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,28 @@
+"""Generator registry: names accepted by ``datagen sample --gan``."""
+from __future__ import annotations
+
+from ..errors import UserError
+from .base import Generator, RenderedViews, Subject, subject_rng  # noqa: F401
+
+AVAILABLE = ("procedural",)
+PLANNED = ("eg3d", "panohead", "spherehead")
+
+
+def make_generator(name: str, checkpoint: str | None = None, options: dict | None = None) -> Generator:
+    """Build a generator by name. ``options`` are the generator's config fields."""
+    options = dict(options or {})
+    if name == "procedural":
+        from .procedural import ProceduralConfig, ProceduralHeads
+
+        if checkpoint:
+            raise UserError("the procedural generator takes no --checkpoint")
+        known = ProceduralConfig.__dataclass_fields__
+        unknown = sorted(set(options) - set(known))
+        if unknown:
+            raise UserError(f"unknown procedural option(s): {', '.join(unknown)}")
+        if "background" in options:
+            options["background"] = tuple(options["background"])
+        return ProceduralHeads(ProceduralConfig(**options))
+    if name in PLANNED:
+        raise UserError(f"generator {name!r} is not available in this version; available: {', '.join(AVAILABLE)}")
+    raise UserError(f"unknown generator {name!r}; choose one of: {', '.join(AVAILABLE + PLANNED)}")

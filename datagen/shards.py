@@ -1,0 +1,308 @@
+"""The dataset on disk: WebDataset-compatible tar shards, sidecars, the index, hidden truth.
+
+A dataset folder holds::
+
+    index.json                 the plan: settings and which subjects each shard holds
+    shard-000000.tar           one tar sample per subject (key = subject id, no dots)
+    shard-000000.json          sidecar, written last: counts and sha256 of the tar and truth file
+    truth/shard-000000.json    ground truth reviewers must not see (e.g. injected defects)
+
+Fields of a subject sample ``<id>``: ``<id>.json`` (metadata and provenance), and per view i
+``<id>.vII.png`` (RGB, 8-bit), ``<id>.vII.mask.png`` (alpha, 8-bit), ``<id>.vII.depth.exr``
+(float32 distance along the ray, world units, 0 where alpha is 0).
+
+A shard is complete only when its sidecar exists: the tar is written under a temporary name,
+flushed and renamed, then the sidecar is written the same way. Tars are byte-reproducible (fixed
+member order, mtime 0, no owner names).
+"""
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import tarfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from .errors import DatasetError
+
+FORMAT = "panolam-heads/1"
+INDEX_NAME = "index.json"
+TRUTH_DIR = "truth"
+SHA_CHUNK = 1 << 20
+
+
+def subject_id(index: int) -> str:
+    return f"subj{index:08d}"
+
+
+def view_name(i: int) -> str:
+    return f"v{i:02d}"
+
+
+def shard_name(i: int) -> str:
+    return f"shard-{i:06d}"
+
+
+def tar_path(root, i) -> Path:
+    return Path(root) / f"{shard_name(i)}.tar"
+
+
+def sidecar_path(root, i) -> Path:
+    return Path(root) / f"{shard_name(i)}.json"
+
+
+def truth_path(root, i) -> Path:
+    return Path(root) / TRUTH_DIR / f"{shard_name(i)}.json"
+
+
+def dumps(obj) -> bytes:
+    """Canonical JSON bytes (sorted keys): identical objects give identical bytes."""
+    return (json.dumps(obj, sort_keys=True, indent=1, allow_nan=False) + "\n").encode()
+
+
+def sha256_file(path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(SHA_CHUNK), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def atomic_write(path, data: bytes) -> None:
+    """Write bytes under a temporary name, fsync, rename: readers never see a partial file."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    with open(tmp, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+# ----------------------------------------------------------------------------------------------
+# Encoding and decoding of fields
+
+def encode_png(array: np.ndarray) -> bytes:
+    """uint8 (H,W,3) or (H,W) -> PNG bytes (deterministic)."""
+    buf = io.BytesIO()
+    Image.fromarray(array).save(buf, format="PNG", compress_level=6)
+    return buf.getvalue()
+
+
+def encode_exr(depth: np.ndarray) -> bytes:
+    """float32 (H,W) -> single-channel 'Z' EXR bytes (ZIP compression)."""
+    import OpenEXR
+
+    buf = io.BytesIO()
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with OpenEXR.File(header, {"Z": np.ascontiguousarray(depth, dtype=np.float32)}) as f:
+        f.write(buf)
+    return buf.getvalue()
+
+
+def decode_png(data: bytes) -> np.ndarray:
+    with Image.open(io.BytesIO(data)) as im:
+        im.load()
+        return np.asarray(im)
+
+
+def decode_exr(data: bytes) -> np.ndarray:
+    import OpenEXR
+
+    with OpenEXR.File(io.BytesIO(data)) as f:
+        return np.array(f.channels()["Z"].pixels, dtype=np.float32)
+
+
+def to_uint8(x: np.ndarray) -> np.ndarray:
+    return np.clip(np.rint(np.asarray(x, dtype=np.float64) * 255.0), 0, 255).astype(np.uint8)
+
+
+def encode_subject(metadata: dict, rgb: np.ndarray, alpha: np.ndarray, depth: np.ndarray) -> list[tuple[str, bytes]]:
+    """One subject's tar members in order: metadata json, then per view rgb, mask, depth."""
+    key = metadata["subject_id"]
+    members = [(f"{key}.json", dumps(metadata))]
+    for i in range(rgb.shape[0]):
+        v = view_name(i)
+        members.append((f"{key}.{v}.png", encode_png(to_uint8(rgb[i]))))
+        members.append((f"{key}.{v}.mask.png", encode_png(to_uint8(alpha[i]))))
+        members.append((f"{key}.{v}.depth.exr", encode_exr(depth[i])))
+    return members
+
+
+# ----------------------------------------------------------------------------------------------
+# Writing a shard
+
+class ShardWriter:
+    """Writes one shard: members go to a temporary tar; :meth:`commit` publishes tar, truth, sidecar.
+
+    Nothing under the final names exists until commit; an interrupted writer leaves only a
+    temporary file that the next run removes.
+    """
+
+    def __init__(self, root, index: int):
+        self.root = Path(root)
+        self.index = index
+        self.final = tar_path(root, index)
+        self.tmp = self.final.with_name(f".{self.final.name}.tmp-{os.getpid()}")
+        self._file = open(self.tmp, "wb")
+        self._tar = tarfile.open(fileobj=self._file, mode="w", format=tarfile.USTAR_FORMAT)
+        self.subjects: list[str] = []
+        self.truth: dict = {}
+        self.n_files = 0
+
+    def add_subject(self, key: str, members: list[tuple[str, bytes]], truth: dict | None = None) -> None:
+        for name, data in members:
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            info.mtime = 0
+            info.mode = 0o644
+            info.uid = info.gid = 0
+            info.uname = info.gname = ""
+            self._tar.addfile(info, io.BytesIO(data))
+        self.subjects.append(key)
+        self.n_files += len(members)
+        if truth is not None:
+            self.truth[key] = truth
+
+    def commit(self, extra: dict | None = None) -> dict:
+        self._tar.close()
+        self._file.flush()
+        os.fsync(self._file.fileno())
+        self._file.close()
+        os.replace(self.tmp, self.final)
+        sidecar = {
+            "format": FORMAT,
+            "shard": shard_name(self.index),
+            "tar": self.final.name,
+            "tar_bytes": self.final.stat().st_size,
+            "tar_sha256": sha256_file(self.final),
+            "subjects": self.subjects,
+            "files": self.n_files,
+        }
+        if self.truth:
+            truth_file = truth_path(self.root, self.index)
+            truth_file.parent.mkdir(exist_ok=True)
+            data = dumps(self.truth)
+            atomic_write(truth_file, data)
+            sidecar["truth_sha256"] = hashlib.sha256(data).hexdigest()
+        sidecar.update(extra or {})
+        atomic_write(sidecar_path(self.root, self.index), dumps(sidecar))
+        return sidecar
+
+    def abort(self) -> None:
+        try:
+            self._tar.close()
+            self._file.close()
+        finally:
+            self.tmp.unlink(missing_ok=True)
+
+
+def remove_partial(root, index: int) -> None:
+    """Remove whatever an interrupted run left of shard ``index`` (temporary files, a tar without sidecar)."""
+    root = Path(root)
+    name = shard_name(index)
+    for p in root.glob(f".{name}.*tmp-*"):
+        p.unlink(missing_ok=True)
+    for p in (root / TRUTH_DIR).glob(f".{name}.*tmp-*"):
+        p.unlink(missing_ok=True)
+    if not sidecar_path(root, index).exists():
+        tar_path(root, index).unlink(missing_ok=True)
+        truth_path(root, index).unlink(missing_ok=True)
+
+
+def read_sidecar(root, index: int) -> dict | None:
+    """The shard's sidecar, or None when the shard is not complete (no sidecar, or it is unreadable)."""
+    path = sidecar_path(root, index)
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def is_complete(root, index: int) -> bool:
+    """Fast completeness check: a readable sidecar whose tar exists with the recorded size."""
+    side = read_sidecar(root, index)
+    tar = tar_path(root, index)
+    return bool(side) and tar.exists() and tar.stat().st_size == side.get("tar_bytes")
+
+
+# ----------------------------------------------------------------------------------------------
+# Reading
+
+def read_index(root) -> dict:
+    path = Path(root) / INDEX_NAME
+    if not path.exists():
+        raise DatasetError(f"{path}: no dataset index here (is this a dataset folder made by 'datagen sample'?)")
+    try:
+        index = json.loads(path.read_text())
+    except ValueError as e:
+        raise DatasetError(f"{path}: the index is not valid JSON ({e})") from None
+    if index.get("format") != FORMAT:
+        raise DatasetError(f"{path}: unknown dataset format {index.get('format')!r}")
+    return index
+
+
+@dataclass
+class SubjectSample:
+    """A subject read back: metadata, and per view rgb (H,W,3) uint8, alpha (H,W) uint8, depth (H,W) float32."""
+
+    key: str
+    metadata: dict
+    rgb: list
+    alpha: list
+    depth: list
+
+
+def iter_tar_samples(path):
+    """Group a shard's members into per-subject dicts {field: bytes}, in order; errors name the file."""
+    path = Path(path)
+    try:
+        with tarfile.open(path, "r:") as tar:
+            current, fields = None, {}
+            for member in tar:
+                if not member.isfile():
+                    continue
+                key, _, field = member.name.partition(".")
+                if key != current and current is not None:
+                    yield current, fields
+                    fields = {}
+                current = key
+                fields[field] = tar.extractfile(member).read()
+            if current is not None:
+                yield current, fields
+    except (tarfile.TarError, EOFError, OSError) as e:
+        raise DatasetError(f"{path}: corrupt or truncated shard ({e})") from None
+
+
+def decode_sample(key: str, fields: dict, where="") -> SubjectSample:
+    try:
+        meta = json.loads(fields["json"])
+        n = len(meta["views"])
+        rgb = [decode_png(fields[f"{view_name(i)}.png"]) for i in range(n)]
+        alpha = [decode_png(fields[f"{view_name(i)}.mask.png"]) for i in range(n)]
+        depth = [decode_exr(fields[f"{view_name(i)}.depth.exr"]) for i in range(n)]
+    except KeyError as e:
+        raise DatasetError(f"{where}: subject {key} lacks field {e}") from None
+    except Exception as e:  # a decoder's own error: report which file and subject
+        raise DatasetError(f"{where}: subject {key} does not decode ({type(e).__name__}: {e})") from None
+    return SubjectSample(key, meta, rgb, alpha, depth)
+
+
+def read_subject(root, key: str) -> SubjectSample:
+    """Read one subject by id through the dataset index."""
+    index = read_index(root)
+    for shard in index["shards"]:
+        if key in shard["subjects"]:
+            path = Path(root) / f"{shard['name']}.tar"
+            if not path.exists():
+                raise DatasetError(f"{path}: shard holding {key} is missing (not generated yet?)")
+            for k, fields in iter_tar_samples(path):
+                if k == key:
+                    return decode_sample(k, fields, str(path))
+            raise DatasetError(f"{path}: subject {key} not found in its shard")
+    raise DatasetError(f"{Path(root) / INDEX_NAME}: no subject {key} in this dataset")

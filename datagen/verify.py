@@ -1,0 +1,108 @@
+"""``datagen verify``: checksums, decoding of every image, counts and the metadata schema."""
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+
+from .errors import DatasetError
+from .shards import (TRUTH_DIR, decode_sample, iter_tar_samples, read_index, read_sidecar, sha256_file,
+                     tar_path, truth_path)
+
+SUBJECT_KEYS = ("format", "subject_id", "subject_index", "dataset_seed", "generator", "latent", "protocol",
+                "pivot", "resolution", "views", "software", "depth", "camera_convention")
+VIEW_KEYS = ("name", "yaw_deg", "pitch_deg", "radius", "fov_deg", "cam2world", "intrinsics")
+
+
+def check_metadata(meta: dict, views: int, resolution: int) -> list[str]:
+    """Schema problems of one subject's metadata (empty when it is valid)."""
+    problems = [f"metadata lacks {k!r}" for k in SUBJECT_KEYS if k not in meta]
+    if problems:
+        return problems
+    if len(meta["views"]) != views:
+        problems.append(f"{len(meta['views'])} views, expected {views}")
+    if meta["resolution"] != resolution:
+        problems.append(f"resolution {meta['resolution']}, expected {resolution}")
+    for k in ("name", "checkpoint_sha256"):
+        if k not in meta["generator"]:
+            problems.append(f"generator record lacks {k!r}")
+    for k in ("version", "git_revision"):
+        if k not in meta["software"]:
+            problems.append(f"software record lacks {k!r}")
+    for v in meta["views"]:
+        missing = [k for k in VIEW_KEYS if k not in v]
+        if missing:
+            problems.append(f"view {v.get('name', '?')} lacks {', '.join(missing)}")
+            continue
+        c2w, K = np.asarray(v["cam2world"], dtype=float), np.asarray(v["intrinsics"], dtype=float)
+        if c2w.shape != (4, 4) or K.shape != (3, 3) or not (np.isfinite(c2w).all() and np.isfinite(K).all()):
+            problems.append(f"view {v['name']}: camera matrices malformed")
+        elif abs(np.linalg.det(c2w[:3, :3]) - 1.0) > 1e-4:
+            problems.append(f"view {v['name']}: cam2world rotation is not orthonormal")
+    return problems
+
+
+def verify_shard(root, shard: dict, views: int, resolution: int) -> list[str]:
+    """Problems of one shard, each a line naming the file."""
+    i = int(shard["name"].split("-")[1])
+    tar = tar_path(root, i)
+    side = read_sidecar(root, i)
+    if side is None:
+        return [f"{tar}: incomplete (no sidecar {shard['name']}.json); rerun 'datagen sample ... --resume'"]
+    if not tar.exists():
+        return [f"{tar}: missing although its sidecar exists"]
+    problems = []
+    if tar.stat().st_size != side.get("tar_bytes"):
+        problems.append(f"{tar}: size {tar.stat().st_size} differs from the sidecar's {side.get('tar_bytes')}")
+    elif sha256_file(tar) != side.get("tar_sha256"):
+        problems.append(f"{tar}: sha256 differs from the sidecar (corrupted)")
+    if "truth_sha256" in side:
+        tp = truth_path(root, i)
+        if not tp.exists() or hashlib.sha256(tp.read_bytes()).hexdigest() != side["truth_sha256"]:
+            problems.append(f"{tp}: missing or its sha256 differs from the sidecar")
+    if side.get("subjects") != shard["subjects"]:
+        problems.append(f"{tar}: sidecar subjects differ from the dataset index")
+    seen = []
+    try:
+        for key, fields in iter_tar_samples(tar):
+            seen.append(key)
+            expected_fields = 1 + 3 * views
+            if len(fields) != expected_fields:
+                problems.append(f"{tar}: subject {key} has {len(fields)} fields, expected {expected_fields}")
+                continue
+            sample = decode_sample(key, fields, str(tar))
+            problems += [f"{tar}: subject {key}: {p}" for p in check_metadata(sample.metadata, views, resolution)]
+            for v, (rgb, a, d) in enumerate(zip(sample.rgb, sample.alpha, sample.depth)):
+                if rgb.shape != (resolution, resolution, 3) or a.shape != (resolution, resolution) \
+                        or d.shape != (resolution, resolution):
+                    problems.append(f"{tar}: subject {key} view {v}: image sizes wrong")
+                elif not np.isfinite(d).all():
+                    problems.append(f"{tar}: subject {key} view {v}: depth has NaN or Inf")
+    except DatasetError as e:
+        problems.append(str(e))
+    if not problems and seen != shard["subjects"]:
+        problems.append(f"{tar}: holds subjects {seen[:3]}..., the index lists {shard['subjects'][:3]}...")
+    return problems
+
+
+def verify_dataset(root, progress: bool = False) -> dict:
+    """Verify a whole dataset; returns {'shards', 'complete', 'subjects', 'problems', 'stray'}."""
+    root = Path(root)
+    index = read_index(root)
+    views, resolution = index["views_per_subject"], index["settings"]["resolution"]
+    problems, complete, subjects = [], 0, 0
+    shards = index["shards"]
+    it = shards
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(shards, unit="shard", desc="verifying")
+    for shard in it:
+        p = verify_shard(root, shard, views, resolution)
+        problems += p
+        if not p:
+            complete += 1
+            subjects += len(shard["subjects"])
+    stray = sorted(str(p) for p in list(root.glob(".*tmp-*")) + list((root / TRUTH_DIR).glob(".*tmp-*")))
+    return {"shards": len(shards), "complete": complete, "subjects": subjects, "problems": problems, "stray": stray}

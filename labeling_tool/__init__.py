@@ -1,0 +1,1 @@
+"""Curation of generated datasets: review GUI, automatic pre-flags, versioned manifests."""
