@@ -110,7 +110,10 @@ def march(features: torch.Tensor, densities: torch.Tensor, depths: torch.Tensor,
     feats_mid = 0.5 * (features[:, :, :-1] + features[:, :, 1:])
     dens_mid = activate_density(0.5 * (densities[:, :, :-1] + densities[:, :, 1:]), density_activation)
     depths_mid = 0.5 * (depths[:, :, :-1] + depths[:, :, 1:])
-    alpha = 1.0 - torch.exp(-dens_mid * deltas)
+    # Non-finite optical depths (an infinite density over a zero-length interval, a field's NaN)
+    # are mapped to finite ones; finite values pass unchanged.
+    optical = torch.nan_to_num(dens_mid * deltas, nan=0.0, posinf=1e4, neginf=0.0)
+    alpha = 1.0 - torch.exp(-optical)
     trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :, :1]), 1.0 - alpha + 1e-10], -2), -2)[:, :, :-1]
     weights = alpha * trans
     out = (weights * feats_mid).sum(-2)

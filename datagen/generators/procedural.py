@@ -248,13 +248,16 @@ def _head_field_local(p: torch.Tensor, P: dict, defects: list[dict]):
         body = smax(body, -sd_sphere(p, c, P["eye_radius"] * 1.45), 0.012)
 
     parts = _face_parts(p, P)
+    hair_window = None
     if "janus" in kinds:
-        # The same face mirrored onto the back of the head (rotated 180 degrees about y),
-        # pushed out far enough to stand clear of the hair.
-        shift = rz + P["hair_thickness"] + 0.03 - _face_z(P, 0.0, 0.0)
-        q = torch.stack([-p[:, 0], p[:, 1], -p[:, 2] - shift], dim=-1)
-        plate = sd_ellipsoid(q, (0.0, -0.02, _face_z(P, 0.0, 0.0) - 0.05), (rx * 0.62, ry * 0.55, 0.08))
+        # The same face mirrored onto the back of the head (rotated 180 degrees about y), seated on
+        # the skull; it shows through a window in the hair, as a GAN's mirrored face does.
+        zf = _face_z(P, 0.0, 0.0)
+        q = torch.stack([-p[:, 0], p[:, 1], -p[:, 2] - (rz + 0.02 - zf) - 0.03], dim=-1)
+        plate_center = (0.0, -0.02, zf - 0.05)
+        plate = sd_ellipsoid(q, plate_center, (rx * 0.62, ry * 0.55, 0.08))
         parts += [(plate, None)] + _face_parts(q, P)
+        hair_window = sd_ellipsoid(q, plate_center, (rx * 0.72, ry * 0.62, 0.6))
     skin_rgb = _skin_rgb(p, P)
 
     sdf_parts = [(body, skin_rgb)]
@@ -266,6 +269,8 @@ def _head_field_local(p: torch.Tensor, P: dict, defects: list[dict]):
 
     hair = _hair_sdf(p, P)
     if hair is not None:
+        if hair_window is not None:
+            hair = smax(hair, -hair_window, 0.01)
         az = torch.atan2(p[:, 0], p[:, 2])
         strands = 0.78 + 0.22 * torch.sin(P["strand_freq"] * az + 8.0 * p[:, 1])
         hair_rgb = _t(P["hair_rgb"]) * strands[:, None]
@@ -289,13 +294,15 @@ def _head_field_local(p: torch.Tensor, P: dict, defects: list[dict]):
         h = kinds["hole"]
         center = np.asarray(h["direction"]) * (max(rx, ry, rz) + 0.02) + np.array([0.0, cy, -0.02])
         cut = sd_sphere(p, center, h["radius"])
+        wall = torch.exp(-cut.abs() / 0.006) * (sdf < 0)  # where the cut, not the head, is the surface
         sdf = smax(sdf, -cut, 0.005)
-        sdf_parts.append((cut.abs(), _t([0.22, 0.07, 0.05]).expand(p.shape[0], 3)))
 
     # Colour of the nearest part, softly blended across seams.
     d_all = torch.stack([d for d, _ in sdf_parts], dim=-1)
     w = torch.softmax(-(d_all - d_all.min(-1, keepdim=True).values) / 0.004, dim=-1)
     rgb = sum(w[:, i:i + 1] * c for i, (_, c) in enumerate(sdf_parts))
+    if "hole" in kinds:
+        rgb = rgb * (1 - wall[:, None]) + _t([0.22, 0.07, 0.05]) * wall[:, None]
     if "washed_out" in kinds:
         s = kinds["washed_out"]["strength"]
         grey = rgb.mean(-1, keepdim=True)
