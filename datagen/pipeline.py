@@ -269,9 +269,7 @@ def prepare_output(spec: JobSpec, index: dict) -> None:
     except OSError as e:
         if e.errno == errno.ENOSPC:
             raise UserError(f"disk full while writing to {out}") from None
-        if e.errno in (errno.EROFS, errno.EACCES, errno.ENOTDIR, errno.EEXIST):
-            raise UserError(f"cannot write to {out}: {e.strerror}") from None
-        raise
+        raise UserError(f"cannot write to {out}: {e.strerror}") from None
 
 
 def run_sample(spec: JobSpec, *, workers: int = 1, backend: str = "local", ray_address: str | None = None,

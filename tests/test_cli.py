@@ -1,0 +1,114 @@
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from datagen.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run(argv, capsys):
+    """Run the CLI in-process; returns (exit code, stdout, stderr)."""
+    try:
+        code = main(argv)
+    except SystemExit as e:  # argparse's own errors
+        code = e.code
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["sample", "--out", "{tmp}/x", "--gan", "stylegan9"], "unknown generator 'stylegan9'"),
+    (["sample", "--out", "{tmp}/x", "--gan", "eg3d"], "not available in this version"),
+    (["sample", "--out", "{tmp}/x", "--protocol", "sideways"], "unknown protocol"),
+    (["sample", "--out", "{tmp}/x", "--subjects", "0"], "--subjects must be at least 1"),
+    (["sample", "--out", "{tmp}/x", "--subjects", "many"], "invalid int value"),
+    (["sample", "--out", "{tmp}/x", "--resolution", "8"], "--resolution must be between"),
+    (["sample", "--out", "{tmp}/x", "--shard-index", "2", "--num-shards", "2"], "--shard-index"),
+    (["sample", "--out", "{tmp}/x", "--workers", "0"], "--workers"),
+    (["sample", "--out", "{tmp}/x", "--defect-rate", "1.5"], "--defect-rate"),
+    (["sample", "--out", "{tmp}/x", "--background", "purple"], "white, black, grey"),
+    (["sample", "--out", "{tmp}/afile/sub"], "cannot write"),
+    (["sample", "--out", "/proc/forbidden"], "cannot write"),
+    (["verify", "{tmp}/nothing-here"], "no dataset index"),
+    (["preview", "{tmp}/nothing-here", "--subject", "1", "--out", "{tmp}/p.png"], "no dataset index"),
+])
+def test_user_mistakes_get_one_line_and_nonzero_exit(argv, message, tmp_path, capsys):
+    (tmp_path / "afile").write_text("not a folder")
+    code, out, err = run([a.format(tmp=tmp_path) for a in argv], capsys)
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], err
+    assert "Traceback" not in err
+
+
+def test_preview_unknown_subject(tiny_dataset, tmp_path, capsys):
+    code, _, err = run(["preview", str(tiny_dataset), "--subject", "99", "--out", str(tmp_path / "p.png")], capsys)
+    assert code == 2 and "no subject subj00000099" in err
+    code, _, err = run(["preview", str(tiny_dataset), "--subject", "three", "--out", str(tmp_path / "p.png")], capsys)
+    assert code == 2 and "--subject" in err
+
+
+def test_preview_writes_a_labelled_contact_sheet(tiny_dataset, tmp_path, capsys):
+    out = tmp_path / "sheet.png"
+    code, stdout, _ = run(["preview", str(tiny_dataset), "--subject", "1", "--out", str(out), "--columns", "2"], capsys)
+    assert code == 0 and out.exists()
+    im = np.asarray(Image.open(out))
+    # 4 views of 32 px are upscaled to >= 160 px tiles in a 2x2 grid, with labels and a title.
+    assert im.shape[1] == 2 * 160 and im.shape[0] > 2 * 160
+    assert im.std() > 20  # not blank
+
+
+def test_preview_with_mask_and_depth(tiny_dataset, tmp_path, capsys):
+    out = tmp_path / "sheet.png"
+    code, _, _ = run(["preview", str(tiny_dataset), "--subject", "subj00000000", "--out", str(out), "--mask-depth"],
+                     capsys)
+    assert code == 0 and Image.open(out).size[0] == 4 * 3 * 160
+
+
+def test_info_and_verify(tiny_dataset, capsys):
+    code, out, _ = run(["info", str(tiny_dataset), "--json"], capsys)
+    info = json.loads(out)
+    assert code == 0 and info["subjects"] == 3 and info["shards_complete"] == 2 and info["protocol"] == "360"
+    code, out, _ = run(["verify", str(tiny_dataset), "--quiet"], capsys)
+    assert code == 0 and "OK: 2/2 shards" in out
+
+
+def test_verify_failure_exits_nonzero(tiny_dataset, tmp_path, capsys):
+    from tests.test_dataset import copy_dataset
+
+    ds = copy_dataset(tiny_dataset, tmp_path / "ds")
+    (ds / "shard-000000.json").unlink()
+    code, out, _ = run(["verify", str(ds), "--quiet"], capsys)
+    assert code == 1 and "FAILED" in out and "shard-000000.tar: incomplete" in out
+
+
+def test_console_scripts_exist():
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    for module, word in (("labeling_tool.cli", "label-tool"), ("panolam.cli", "panolam")):
+        r = subprocess.run([sys.executable, "-m", module], capture_output=True, text=True, env=env)
+        assert r.returncode == 2 and word in r.stderr and "not yet" in r.stderr
+    r = subprocess.run([sys.executable, "-m", "datagen.cli", "--help"], capture_output=True, text=True, env=env)
+    assert r.returncode == 0 and "sample" in r.stdout
+
+
+def test_disk_full_is_one_line_and_leaves_nothing_complete(tmp_path, capsys, monkeypatch):
+    import errno
+
+    import datagen.pipeline as pipeline
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(pipeline, "encode_subject", full)
+    out = tmp_path / "full"
+    code, _, err = run(["sample", "--out", str(out), "--subjects", "2", "--resolution", "16", "--views", "1",
+                        "--quiet"], capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "disk full" in err and "--resume" in err
+    assert sorted(p.name for p in out.iterdir()) == ["index.json"]  # no shard, no temporary file left
