@@ -132,23 +132,29 @@ def ray_range(radius):
 def rays(cam2world: torch.Tensor, K_norm: torch.Tensor, resolution: int):
     """Ray origins and unit directions (V, R*R, 3) through pixel centres, row-major pixels.
 
-    Pixel (row, col) has normalized coordinates u = (col + 0.5) / R, v = (row + 0.5) / R.
+    Pixel (row, col) has normalized coordinates u = col/R + 0.5/R, v = row/R + 0.5/R. The
+    arithmetic follows EG3D's ray sampler operation by operation (lift to camera space, transform
+    the point with the full cam2world, subtract the centre, normalize), so GAN renders reproduce
+    the originals to float32 rounding.
     """
     cam2world = torch.as_tensor(cam2world, dtype=torch.float32)
     K_norm = torch.as_tensor(K_norm, dtype=torch.float32)
-    V = cam2world.shape[0]
-    t = (torch.arange(resolution, dtype=torch.float32) + 0.5) / resolution
-    v, u = torch.meshgrid(t, t, indexing="ij")
-    u, v = u.reshape(1, -1), v.reshape(1, -1)
+    V, M = cam2world.shape[0], resolution ** 2
+    idx = torch.arange(resolution, dtype=torch.float32)
+    uv = torch.stack(torch.meshgrid(idx, idx, indexing="ij")) * (1.0 / resolution) + (0.5 / resolution)
+    uv = uv.flip(0).reshape(2, -1).transpose(1, 0).unsqueeze(0).repeat(V, 1, 1)
+    x_cam, y_cam = uv[:, :, 0], uv[:, :, 1]
+    z_cam = torch.ones((V, M))
     fx, fy = K_norm[:, 0, 0, None], K_norm[:, 1, 1, None]
     cx, cy, sk = K_norm[:, 0, 2, None], K_norm[:, 1, 2, None], K_norm[:, 0, 1, None]
-    y_cam = (v - cy) / fy
-    x_cam = (u - cx - sk * y_cam) / fx
-    d_cam = torch.stack([x_cam, y_cam, torch.ones_like(x_cam)], dim=-1)  # (V, N, 3)
-    dirs = torch.einsum("vij,vnj->vni", cam2world[:, :3, :3], d_cam)
-    dirs = dirs / dirs.norm(dim=-1, keepdim=True)
-    origins = cam2world[:, None, :3, 3].expand(V, dirs.shape[1], 3)
-    return origins.contiguous(), dirs
+    x_lift = (x_cam - cx + cy * sk / fy - sk * y_cam / fy) / fx * z_cam
+    y_lift = (y_cam - cy) / fy * z_cam
+    cam_points = torch.stack((x_lift, y_lift, z_cam, torch.ones_like(z_cam)), dim=-1)
+    world = torch.bmm(cam2world, cam_points.permute(0, 2, 1)).permute(0, 2, 1)[:, :, :3]
+    centre = cam2world[:, :3, 3]
+    dirs = torch.nn.functional.normalize(world - centre[:, None, :], dim=2)
+    origins = centre.unsqueeze(1).repeat(1, M, 1)
+    return origins, dirs
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,0 +1,264 @@
+"""EG3D, PanoHead and SphereHead tri-plane generators on the project's volume renderer.
+
+Three ways to turn the StyleGAN2 backbone's output into features at a 3D point p (world units,
+scaled by 2/box_warp into the [-1, 1] cube):
+
+* ``eg3d``: 3 planes of 32 channels sampled at (x, y), (x, z) and (z, x). The third projection is
+  a known quirk of the released code; its checkpoints were trained with it, so we keep it.
+* ``panohead``: a tri-grid, 3 planes of 32 channels x D depth slices, sampled in 3D at (x, y, z),
+  (x, z, y) and (y, z, x); channel index c*D + d.
+* ``spherehead``: two spherical tri-planes A and B (backbone 512 ch -> ConvA / ConvB, 1x1 convs ->
+  D=3 planes x 32 ch each, depth-major). A samples Ry(pi/2) p (seam at the back), B samples
+  Ry(-pi/2) Rz(-pi/2) p (seam at the face); each in spherical coordinates (theta, phi, r) on planes
+  (theta, phi), (theta, r), (phi, r); blended by w = (1+cos(pi theta))/2 * (1+cos(pi phi))/2.
+
+The decoder averages the three planes' features. PanoHead and SphereHead zero the density outside
+|x|, |z| <= box/2 - 0.1 (``triplane_crop``), composite a generated background behind the render and
+turn the feature image into RGB with a ToRGB layer; EG3D takes the first three feature channels.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import nn
+
+from ..render import RenderSettings, render_rays
+from .networks import (Conv2dLayer, FullyConnectedLayer, MappingNetwork, StyleGAN2Backbone, Superresolution,
+                       SynthesisNetwork, ToRGBLayer)
+
+KINDS = ("eg3d", "panohead", "spherehead")
+TRIPLANE_CROP = 0.1
+
+
+class OSGDecoder(nn.Module):
+    """Mean of the per-plane features -> FC -> softplus -> FC -> (density, 32 features)."""
+
+    def __init__(self, n_features, lr_multiplier=1.0, activation="sigmoid", hidden=64, out_features=32):
+        super().__init__()
+        self.activation = activation
+        self.net = nn.Sequential(FullyConnectedLayer(n_features, hidden, lr_multiplier=lr_multiplier), nn.Softplus(),
+                                 FullyConnectedLayer(hidden, 1 + out_features, lr_multiplier=lr_multiplier))
+
+    def forward(self, plane_features):
+        x = plane_features.mean(1)
+        n, m, c = x.shape
+        x = self.net(x.view(n * m, c)).view(n, m, -1)
+        rgb, sigma = x[..., 1:], x[..., 0:1]
+        if self.activation == "sigmoid":
+            rgb = torch.sigmoid(rgb) * (1 + 2 * 0.001) - 0.001
+        elif self.activation == "lrelu":
+            rgb = torch.nn.functional.leaky_relu(rgb, 0.2) * math.sqrt(2)
+        return rgb, sigma
+
+
+def _rot_y(a):
+    return np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+
+
+def _rot_z(a):
+    return np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+
+
+# Row-vector rotations (p @ R), stored in float32 as the originals do.
+SPHERE_A = torch.from_numpy(_rot_y(np.pi / 2.0).T.astype(np.float32))
+SPHERE_B = torch.from_numpy((_rot_y(-np.pi / 2) @ _rot_z(-np.pi / 2.0)).T.astype(np.float32))
+
+
+def _spherical(p):
+    """(theta, phi, r) in [-1, 1] of points (N, M, 3) in the [-1, 1] cube."""
+    r = (p ** 2).sum(dim=-1).sqrt() / math.sqrt(3)
+    r = 2.0 * r - 1.0
+    theta = torch.atan2((p[:, :, :2] ** 2).sum(dim=-1).sqrt(), p[:, :, 2]) / math.pi
+    theta = 2.0 * theta - 1.0
+    phi = torch.atan2(p[:, :, 1], p[:, :, 0]) / math.pi
+    return theta, phi, r
+
+
+def _sample_2d(planes, coords):
+    """planes (N, P, C, H, W), coords (N*P, M, 2) -> (N, P, M, C); bilinear, zero padding."""
+    n, p, c, h, w = planes.shape
+    out = torch.nn.functional.grid_sample(planes.reshape(n * p, c, h, w), coords.unsqueeze(1), mode="bilinear",
+                                          padding_mode="zeros", align_corners=False)
+    return out.permute(0, 3, 2, 1).reshape(n, p, -1, c)
+
+
+def _sample_sphere(planes, p):
+    """One spherical tri-plane (N, 3, C, H, W) at points p (N, M, 3) -> features (N, 3, M, C), weights."""
+    theta, phi, r = _spherical(p)
+    n, m = theta.shape
+    w = ((1.0 + torch.cos(torch.pi * theta)) / 2.0) * ((1.0 + torch.cos(torch.pi * phi)) / 2.0)
+    w = w.view(n, 1, m, 1)
+    coords = torch.stack([torch.stack([theta, phi], -1), torch.stack([theta, r], -1), torch.stack([phi, r], -1)], 1)
+    return _sample_2d(planes, coords.reshape(n * 3, m, 2)), w
+
+
+def sample_planes(kind: str, planes: torch.Tensor, points: torch.Tensor, box_warp: float, depth: int = 3):
+    """Per-plane features (N, 3, M, 32) at world points (N, M, 3), for a generator ``kind``."""
+    p = (2 / box_warp) * points
+    x, y, z = p.unbind(-1)
+    if kind == "eg3d":
+        n, m = x.shape
+        coords = torch.stack([torch.stack([x, y], -1), torch.stack([x, z], -1), torch.stack([z, x], -1)], 1)
+        return _sample_2d(planes, coords.reshape(n * 3, m, 2))
+    if kind == "panohead":
+        n, m = x.shape
+        c = planes.shape[2] // depth
+        grid = planes.reshape(n * 3, c, depth, planes.shape[-2], planes.shape[-1])
+        coords = torch.stack([torch.stack([x, y, z], -1), torch.stack([x, z, y], -1), torch.stack([y, z, x], -1)], 1)
+        out = torch.nn.functional.grid_sample(grid, coords.reshape(n * 3, 1, 1, m, 3), mode="bilinear",
+                                              padding_mode="zeros", align_corners=False)
+        return out.permute(0, 4, 3, 2, 1).reshape(n, 3, m, c)
+    if kind == "spherehead":
+        fa, wa = _sample_sphere(planes[:, 0], p @ SPHERE_A)
+        fb, wb = _sample_sphere(planes[:, 1], p @ SPHERE_B)
+        return (fa * wa + fb * wb) / (wa + wb + 1.0e-8)
+    raise ValueError(f"unknown generator kind {kind!r}")
+
+
+def crop_outside(points: torch.Tensor, box_warp: float) -> torch.Tensor:
+    """PanoHead's crop: True where |x| or |z| exceeds box/2 - 0.1 (density is set to -1e3 there)."""
+    inside = (points[..., [0, 2]].abs() <= (box_warp / 2 - TRIPLANE_CROP)).all(dim=-1, keepdim=True)
+    return ~inside
+
+
+class TriPlaneGenerator(nn.Module):
+    """One of the three generators, built from the constructor kwargs stored in its checkpoint."""
+
+    def __init__(self, kind, z_dim, c_dim, w_dim, img_resolution, img_channels=3, sr_num_fp16_res=0,
+                 mapping_kwargs=None, rendering_kwargs=None, sr_kwargs=None, channel_base=32768, channel_max=512,
+                 conv_clamp=None, **_ignored):
+        super().__init__()
+        if kind not in KINDS:
+            raise ValueError(f"unknown generator kind {kind!r}")
+        rk = dict(rendering_kwargs or {})
+        self.kind, self.rendering_kwargs = kind, rk
+        self.z_dim, self.c_dim, self.w_dim, self.img_resolution = z_dim, c_dim, w_dim, img_resolution
+        self.depth = int(rk.get("triplane_depth", 1))
+        synthesis = dict(channel_base=channel_base, channel_max=channel_max, conv_clamp=conv_clamp)
+        if kind == "eg3d":
+            backbone_res, backbone_ch = 256, 32 * 3
+        elif kind == "panohead":
+            backbone_res, backbone_ch = rk["triplane_size"], 32 * 3 * self.depth
+        else:
+            backbone_res, backbone_ch = rk["triplane_size"], 512
+        self.backbone = StyleGAN2Backbone(z_dim, c_dim, w_dim, backbone_res, backbone_ch, mapping_kwargs, **synthesis)
+        if kind == "spherehead":
+            def proj():
+                return nn.Sequential(Conv2dLayer(512, 256, 1, bias=False), Conv2dLayer(256, 32 * self.depth, 1, bias=False))
+            self.ConvA, self.ConvB = proj(), proj()
+        sr_name = rk["superresolution_module"].rsplit(".", 1)[-1]
+        self.superresolution = Superresolution(sr_name, 32, img_resolution, sr_num_fp16_res, rk.get("sr_antialias", True),
+                                               **(sr_kwargs or {}))
+        activation = "sigmoid" if kind == "eg3d" else rk.get("decoder_activation", "sigmoid")
+        self.decoder = OSGDecoder(32, rk.get("decoder_lr_mul", 1.0), activation)
+        if kind != "eg3d":
+            self.torgb = ToRGBLayer(32, 3, w_dim) if rk.get("use_torgb_raw", False) else None
+            self.bcg_synthesis = None
+            if rk.get("use_background", False):
+                self.bcg_synthesis = SynthesisNetwork(w_dim, self.superresolution.input_resolution, 32,
+                                                      channel_base=channel_base // 2, channel_max=channel_max,
+                                                      conv_clamp=conv_clamp)
+            self.t_mapping = MappingNetwork(z_dim, c_dim, 3, num_ws=1, last_activation="linear", lr_multiplier=1.0,
+                                            **(mapping_kwargs or {}))
+        self.neural_rendering_resolution = 64
+
+    # -- latent side ------------------------------------------------------------------------------
+    def _c(self, c):
+        if self.rendering_kwargs.get("c_gen_conditioning_zero", False):
+            c = torch.zeros_like(c)
+        return c * self.rendering_kwargs.get("c_scale", 0)
+
+    def mapping(self, z, c, truncation_psi=1.0, truncation_cutoff=None):
+        return self.backbone.mapping(z, self._c(c), truncation_psi, truncation_cutoff)
+
+    def delta_c(self, z, c, truncation_psi=1.0, truncation_cutoff=None):
+        """PanoHead's learned camera translation offset (3,) per sample (used only in training)."""
+        return self.t_mapping(z, self._c(c), truncation_psi, truncation_cutoff).squeeze(1)
+
+    # -- per-subject work ---------------------------------------------------------------------------
+    def planes(self, ws, noise_mode="const", generator=None):
+        """Backbone output shaped for :func:`sample_planes`."""
+        raw = self.backbone.synthesis(ws, noise_mode=noise_mode, generator=generator)
+        n, _, h, w = raw.shape
+        if self.kind == "eg3d":
+            return raw.view(n, 3, 32, h, w)
+        if self.kind == "panohead":
+            return raw.view(n, 3, 32 * self.depth, h, w)
+        a = self.ConvA(raw).view(n, 1, self.depth, 32, h, w)
+        b = self.ConvB(raw).view(n, 1, self.depth, 32, h, w)
+        return torch.cat([a, b], 1)
+
+    def background(self, ws, noise_mode="const", generator=None):
+        """PanoHead/SphereHead's background feature image (N, 32, R, R), or None."""
+        bcg = getattr(self, "bcg_synthesis", None)
+        if bcg is None:
+            return None
+        wb = ws[:, :bcg.num_ws]
+        if wb.size(1) < bcg.num_ws:
+            wb = torch.cat([wb, wb[:, -1:].repeat(1, bcg.num_ws - wb.size(1), 1)], 1)
+        return bcg(wb, noise_mode=noise_mode, generator=generator)
+
+    # -- querying and rendering ---------------------------------------------------------------------
+    def plane_features(self, planes, points):
+        return sample_planes(self.kind, planes, points, self.rendering_kwargs["box_warp"], self.depth)
+
+    def decode(self, planes, points):
+        """Decoder output at world points (N, M, 3): features (N, M, 32), raw density (N, M, 1)."""
+        return self.decoder(self.plane_features(planes, points))
+
+    def field(self, planes):
+        """The renderer's field for these planes (crop applied for PanoHead/SphereHead)."""
+        box = self.rendering_kwargs["box_warp"]
+
+        def query(points, _dirs):
+            rgb, sigma = self.decode(planes, points)
+            if self.kind != "eg3d":
+                sigma = torch.where(crop_outside(points, box), torch.full_like(sigma, -1e3), sigma)
+            return rgb, sigma
+        return query
+
+    def render_settings(self, deterministic: bool) -> RenderSettings:
+        rk = self.rendering_kwargs
+        return RenderSettings(rk["depth_resolution"], rk["depth_resolution_importance"], rk.get("clamp_mode", "softplus"),
+                              deterministic)
+
+    def synthesis(self, ws, origins, dirs, resolution, ray_start=None, ray_end=None, planes=None, background=None,
+                  noise_mode="const", deterministic=False, generator=None):
+        """Render rays (N, R*R, 3) of N subjects/views; returns the originals' output dict.
+
+        ``planes``/``background`` may be passed precomputed (the per-subject work). ray_start/ray_end
+        default to the checkpoint's range; pass per-view ranges when the camera radius varies.
+        """
+        rk = self.rendering_kwargs
+        if planes is None:
+            planes = self.planes(ws, noise_mode, generator)
+        start = rk["ray_start"] if ray_start is None else ray_start
+        end = rk["ray_end"] if ray_end is None else ray_end
+        feats, depth, weights = render_rays(self.field(planes), origins, dirs, start, end,
+                                            self.render_settings(deterministic), generator)
+        n = origins.shape[0]
+        feature_image = feats.permute(0, 2, 1).reshape(n, feats.shape[-1], resolution, resolution).contiguous()
+        depth_image = depth.permute(0, 2, 1).reshape(n, 1, resolution, resolution)
+        weights_image = weights.permute(0, 2, 1).reshape(n, 1, resolution, resolution)
+        if self.decoder.activation == "sigmoid":
+            feature_image = feature_image * 2 - 1
+        out = {"image_depth": depth_image, "weights_sum": weights_image}
+        if self.kind != "eg3d":
+            if background is None:
+                background = self.background(ws, noise_mode, generator)
+            if background is not None:
+                bcg = torch.nn.functional.interpolate(background, size=feature_image.shape[2:], mode="bilinear",
+                                                      align_corners=False, antialias=rk.get("sr_antialias", True))
+                feature_image = feature_image + (1 - weights_image) * bcg
+            out["image_mask"] = weights_image * (1 + 2 * 0.001) - 0.001
+        if getattr(self, "torgb", None) is not None:
+            rgb = self.torgb(feature_image, ws[:, -1], fused_modconv=False)
+        else:
+            rgb = feature_image[:, :3]
+        out["feature_image"] = feature_image
+        out["image_raw"] = rgb
+        out["image"] = self.superresolution(rgb, feature_image, ws, noise_mode=rk.get("superresolution_noise_mode", "none"),
+                                            generator=generator)
+        return out
