@@ -14,8 +14,11 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message}\n")
 
 
-def _background(text: str):
+def parse_background(text: str, allow_own: bool):
+    """'own' (GANs only), white, black, grey or R,G,B in [0, 1]."""
     named = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0), "grey": (0.5, 0.5, 0.5)}
+    if text == "own" and allow_own:
+        return "own"
     if text in named:
         return named[text]
     try:
@@ -23,7 +26,8 @@ def _background(text: str):
     except ValueError:
         rgb = ()
     if len(rgb) != 3 or not all(0.0 <= v <= 1.0 for v in rgb):
-        raise argparse.ArgumentTypeError("use white, black, grey or R,G,B with values in [0, 1]")
+        choices = "own (GANs), white, black, grey" if allow_own else "white, black, grey"
+        raise UserError(f"--background must be {choices} or R,G,B with values in [0, 1]")
     return rgb
 
 
@@ -48,7 +52,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--num-shards", type=int, default=1, help="split the shards over N jobs; job K writes shards s with s %% N == K")
     s.add_argument("--resume", action="store_true", help="skip complete shards, redo partial ones")
     s.add_argument("--defect-rate", type=float, default=None, help="procedural: fraction of subjects with an injected defect (default 0.04)")
-    s.add_argument("--background", type=_background, default=None, help="procedural: white (default), black, grey or R,G,B")
+    s.add_argument("--background", default=None,
+                   help="white, black, grey or R,G,B (procedural default white); GANs also 'own' (default)")
+    s.add_argument("--truncation", type=float, default=None, help="GANs: truncation psi (default 0.7)")
+    s.add_argument("--truncation-cutoff", type=int, default=None, help="GANs: truncate the first N ws (default 14)")
+    s.add_argument("--save-planes", type=int, default=0, metavar="RES",
+                   help="GANs: also store the plane features in fp16 at RES x RES (for distillation)")
+    s.add_argument("--device", default=None, help="GANs: cpu, cuda or auto (default: cuda when available)")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
 
     v = sub.add_parser("verify", help="check checksums, decoding, counts and metadata of a dataset")
@@ -72,12 +82,28 @@ def _sample(args) -> int:
     from .pipeline import JobSpec, run_sample, software_info
 
     options = {}
+    gan = args.gan != "procedural"
     if args.defect_rate is not None:
         if not 0.0 <= args.defect_rate <= 1.0:
             raise UserError("--defect-rate must be between 0 and 1")
         options["defect_rate"] = args.defect_rate
     if args.background is not None:
-        options["background"] = list(args.background)
+        bg = parse_background(args.background, allow_own=gan)
+        options["background"] = bg if isinstance(bg, str) else list(bg)
+    if args.truncation is not None:
+        if not 0.0 <= args.truncation <= 2.0:
+            raise UserError("--truncation must be between 0 and 2")
+        options["truncation_psi"] = args.truncation
+    if args.truncation_cutoff is not None:
+        options["truncation_cutoff"] = args.truncation_cutoff
+    if args.save_planes:
+        if not gan:
+            raise UserError("--save-planes: the procedural generator has no planes")
+        if not 8 <= args.save_planes <= 1024:
+            raise UserError("--save-planes must be between 8 and 1024")
+        options["save_planes"] = args.save_planes
+    if args.device is not None:
+        options["device"] = args.device
     spec = JobSpec(out=args.out, gan=args.gan, checkpoint=args.checkpoint, generator_options=options,
                    protocol=args.protocol, subjects=args.subjects, resolution=args.resolution, views=args.views,
                    seed=args.seed, shard_size=args.shard_size, software=software_info())

@@ -116,7 +116,7 @@ def _generator(spec: JobSpec):
 
 
 def render_subject(spec: JobSpec, index: int):
-    """Sample and render one subject; returns (metadata, RenderedViews, truth)."""
+    """Sample and render one subject; returns (metadata, RenderedViews, Subject)."""
     gen = _generator(spec)
     subject = gen.sample_subject(spec.seed, index)
     views = sample_views(spec.protocol, subject_rng(spec.seed, index, STREAM_CAMERAS), spec.views)
@@ -141,9 +141,10 @@ def render_subject(spec: JobSpec, index: int):
         "depth": DEPTH_MEANING,
         "camera_convention": CAMERA_CONVENTION,
         "views": records,
+        "arrays": {k: {"shape": list(a.shape), "dtype": str(a.dtype)} for k, a in sorted(subject.arrays.items())},
         "software": spec.software,
     }
-    return metadata, out, subject.truth
+    return metadata, out, subject
 
 
 def write_shard(spec: JobSpec, shard: int, progress=None) -> dict:
@@ -152,8 +153,9 @@ def write_shard(spec: JobSpec, shard: int, progress=None) -> dict:
     writer = ShardWriter(spec.out, shard)
     try:
         for index in spec.shard_subjects(shard):
-            metadata, out, truth = render_subject(spec, index)
-            writer.add_subject(metadata["subject_id"], encode_subject(metadata, out.rgb, out.alpha, out.depth), truth)
+            metadata, out, subject = render_subject(spec, index)
+            members = encode_subject(metadata, out.rgb, out.alpha, out.depth, subject.arrays)
+            writer.add_subject(metadata["subject_id"], members, subject.truth or None)
             if progress:
                 progress(len(out.rgb))
         return writer.commit({"views_per_subject": spec.views})
@@ -211,24 +213,71 @@ def _drain(queue, bar) -> None:
 
 
 def _ray_task(spec: JobSpec, shard: int, threads: int) -> dict:
+    # Ray workers are reused across tasks and jobs: set the thread count for every task.
     torch.set_num_threads(threads)
     return write_shard(spec, shard)
 
 
 def _run_ray(spec: JobSpec, shards: list[int], address: str | None, threads: int, bar) -> None:
+    """Run the shard tasks on Ray: the cluster this process is already connected to, else the one
+    at ``address`` / RAY_ADDRESS, else a private local instance. Only a connection or instance made
+    here is closed here."""
     try:
         import ray
     except ImportError:
         raise UserError("the ray backend needs the optional extra: pip install 'panolam-toolkit[ray]'") from None
-    if not ray.is_initialized():
-        ray.init(address=address, include_dashboard=False, log_to_driver=False,
-                 **({} if address else {"num_cpus": os.cpu_count()}))
-    task = ray.remote(num_cpus=threads)(_ray_task)
-    pending = [task.remote(spec, s, threads) for s in shards]
-    while pending:
-        done, pending = ray.wait(pending, num_returns=1)
-        sidecar = ray.get(done[0])
-        bar.update(len(sidecar["subjects"]) * spec.views)
+    import logging
+
+    ray_logger = logging.getLogger("ray")
+    level = ray_logger.level
+    started = not ray.is_initialized()
+    if started:
+        # A local instance started here reports no usage statistics, serves no dashboard and keeps
+        # its workers' output and its own informational messages off the terminal.
+        set_usage_env = "RAY_USAGE_STATS_ENABLED" not in os.environ
+        if set_usage_env:
+            os.environ["RAY_USAGE_STATS_ENABLED"] = "0"
+        try:
+            ray.init(address=address, include_dashboard=False, log_to_driver=False,
+                     logging_level=logging.ERROR)
+        except Exception as e:
+            ray_logger.setLevel(level)
+            raise UserError(f"cannot start or reach Ray ({address or os.environ.get('RAY_ADDRESS') or 'local'}): "
+                            f"{str(e).splitlines()[0] if str(e) else type(e).__name__}") from e
+        finally:
+            if set_usage_env:
+                os.environ.pop("RAY_USAGE_STATS_ENABLED", None)
+    pending: dict = {}
+    try:
+        # A task asking for more CPUs than any node has would wait forever.
+        biggest = max((n.get("Resources", {}).get("CPU", 0) for n in ray.nodes() if n.get("Alive")), default=0)
+        threads = max(1, min(threads, int(biggest) or threads))
+        task = ray.remote(num_cpus=threads)(_ray_task)
+        pending = {task.remote(spec, s, threads): s for s in shards}
+        while pending:
+            done, _ = ray.wait(list(pending), num_returns=1)
+            shard = pending.pop(done[0])
+            try:
+                sidecar = ray.get(done[0])
+            except ray.exceptions.RayTaskError as e:
+                cause = getattr(e, "cause", None)
+                if isinstance(cause, Exception):
+                    # The task's own error, as the local backend raises it; the chained error
+                    # carries the remote traceback.
+                    raise cause from e
+                raise RuntimeError(f"shard {shard} failed on Ray: {e}") from e
+            except ray.exceptions.RayError as e:
+                raise RuntimeError(f"shard {shard} failed on Ray ({type(e).__name__}): {e}") from e
+            bar.update(len(sidecar["subjects"]) * spec.views)
+    finally:
+        for ref in pending:  # after an error or an interrupt: stop the rest (each removes its partial shard)
+            try:
+                ray.cancel(ref)
+            except Exception:
+                pass
+        if started:
+            ray.shutdown()
+            ray_logger.setLevel(level)
 
 
 class _NullBar:

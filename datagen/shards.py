@@ -9,7 +9,8 @@ A dataset folder holds::
 
 Fields of a subject sample ``<id>``: ``<id>.json`` (metadata and provenance), and per view i
 ``<id>.vII.png`` (RGB, 8-bit), ``<id>.vII.mask.png`` (alpha, 8-bit), ``<id>.vII.depth.exr``
-(float32 distance along the ray, world units, 0 where alpha is 0).
+(float32 distance along the ray, world units, 0 where alpha is 0), and ``<id>.<name>.npy`` for each
+numeric array the generator records (GANs: ``z``, ``w``, optionally ``planes`` in fp16).
 
 A shard is complete only when its sidecar exists: the tar is written under a temporary name,
 flushed and renamed, then the sidecar is written the same way. Tars are byte-reproducible (fixed
@@ -122,10 +123,22 @@ def to_uint8(x: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(np.asarray(x, dtype=np.float64) * 255.0), 0, 255).astype(np.uint8)
 
 
-def encode_subject(metadata: dict, rgb: np.ndarray, alpha: np.ndarray, depth: np.ndarray) -> list[tuple[str, bytes]]:
-    """One subject's tar members in order: metadata json, then per view rgb, mask, depth."""
+def encode_npy(array: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, np.ascontiguousarray(array), allow_pickle=False)
+    return buf.getvalue()
+
+
+def decode_npy(data: bytes) -> np.ndarray:
+    return np.load(io.BytesIO(data), allow_pickle=False)
+
+
+def encode_subject(metadata: dict, rgb: np.ndarray, alpha: np.ndarray, depth: np.ndarray,
+                   arrays: dict | None = None) -> list[tuple[str, bytes]]:
+    """One subject's tar members in order: metadata json, arrays (sorted by name), then per view rgb, mask, depth."""
     key = metadata["subject_id"]
     members = [(f"{key}.json", dumps(metadata))]
+    members += [(f"{key}.{name}.npy", encode_npy(arrays[name])) for name in sorted(arrays or {})]
     for i in range(rgb.shape[0]):
         v = view_name(i)
         members.append((f"{key}.{v}.png", encode_png(to_uint8(rgb[i]))))
@@ -249,13 +262,15 @@ def read_index(root) -> dict:
 
 @dataclass
 class SubjectSample:
-    """A subject read back: metadata, and per view rgb (H,W,3) uint8, alpha (H,W) uint8, depth (H,W) float32."""
+    """A subject read back: metadata, per view rgb (H,W,3) uint8, alpha (H,W) uint8, depth (H,W) float32,
+    and the generator's arrays by name."""
 
     key: str
     metadata: dict
     rgb: list
     alpha: list
     depth: list
+    arrays: dict
 
 
 def iter_tar_samples(path):
@@ -286,11 +301,12 @@ def decode_sample(key: str, fields: dict, where="") -> SubjectSample:
         rgb = [decode_png(fields[f"{view_name(i)}.png"]) for i in range(n)]
         alpha = [decode_png(fields[f"{view_name(i)}.mask.png"]) for i in range(n)]
         depth = [decode_exr(fields[f"{view_name(i)}.depth.exr"]) for i in range(n)]
+        arrays = {name: decode_npy(fields[f"{name}.npy"]) for name in meta.get("arrays", {})}
     except KeyError as e:
         raise DatasetError(f"{where}: subject {key} lacks field {e}") from None
     except Exception as e:  # a decoder's own error: report which file and subject
         raise DatasetError(f"{where}: subject {key} does not decode ({type(e).__name__}: {e})") from None
-    return SubjectSample(key, meta, rgb, alpha, depth)
+    return SubjectSample(key, meta, rgb, alpha, depth, arrays)
 
 
 def read_subject(root, key: str) -> SubjectSample:

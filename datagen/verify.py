@@ -67,12 +67,14 @@ def verify_shard(root, shard: dict, views: int, resolution: int) -> list[str]:
     try:
         for key, fields in iter_tar_samples(tar):
             seen.append(key)
-            expected_fields = 1 + 3 * views
-            if len(fields) != expected_fields:
+            expected_fields = 1 + 3 * views + sum(f.endswith(".npy") for f in fields)
+            if len(fields) != expected_fields or not any(f == "json" for f in fields):
                 problems.append(f"{tar}: subject {key} has {len(fields)} fields, expected {expected_fields}")
                 continue
             sample = decode_sample(key, fields, str(tar))
             problems += [f"{tar}: subject {key}: {p}" for p in check_metadata(sample.metadata, views, resolution)]
+            if sorted(sample.arrays) != sorted(sample.metadata.get("arrays", {})):
+                problems.append(f"{tar}: subject {key}: arrays differ from those its metadata lists")
             for v, (rgb, a, d) in enumerate(zip(sample.rgb, sample.alpha, sample.depth)):
                 if rgb.shape != (resolution, resolution, 3) or a.shape != (resolution, resolution) \
                         or d.shape != (resolution, resolution):

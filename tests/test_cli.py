@@ -25,7 +25,11 @@ def run(argv, capsys):
 
 @pytest.mark.parametrize("argv, message", [
     (["sample", "--out", "{tmp}/x", "--gan", "stylegan9"], "unknown generator 'stylegan9'"),
-    (["sample", "--out", "{tmp}/x", "--gan", "eg3d"], "not available in this version"),
+    (["sample", "--out", "{tmp}/x", "--gan", "eg3d"], "needs --checkpoint PATH: EG3D checkpoints"),
+    (["sample", "--out", "{tmp}/x", "--gan", "spherehead", "--checkpoint", "{tmp}/none.pkl"], "checkpoint not found"),
+    (["sample", "--out", "{tmp}/x", "--gan", "eg3d", "--checkpoint", "{tmp}/afile"], "not a readable generator"),
+    (["sample", "--out", "{tmp}/x", "--save-planes", "32"], "procedural generator has no planes"),
+    (["sample", "--out", "{tmp}/x", "--gan", "procedural", "--background", "own"], "white, black, grey"),
     (["sample", "--out", "{tmp}/x", "--protocol", "sideways"], "unknown protocol"),
     (["sample", "--out", "{tmp}/x", "--subjects", "0"], "--subjects must be at least 1"),
     (["sample", "--out", "{tmp}/x", "--subjects", "many"], "invalid int value"),
@@ -34,6 +38,7 @@ def run(argv, capsys):
     (["sample", "--out", "{tmp}/x", "--workers", "0"], "--workers"),
     (["sample", "--out", "{tmp}/x", "--defect-rate", "1.5"], "--defect-rate"),
     (["sample", "--out", "{tmp}/x", "--background", "purple"], "white, black, grey"),
+    (["sample", "--out", "{tmp}/x", "--truncation", "-1"], "--truncation"),
     (["sample", "--out", "{tmp}/afile/sub"], "cannot write"),
     (["sample", "--out", "/proc/forbidden"], "cannot write"),
     (["verify", "{tmp}/nothing-here"], "no dataset index"),

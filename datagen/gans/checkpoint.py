@@ -11,7 +11,6 @@ the file's parameter for parameter.
 from __future__ import annotations
 
 import collections
-import copyreg
 import hashlib
 import io
 import pickle
@@ -36,6 +35,10 @@ STUB_PREFIXES = ("training.", "torch_utils.", "dnnlib.", "torch.nn.modules.")
 
 class CheckpointError(UserError):
     """A checkpoint that cannot be loaded, stated in one line naming the file."""
+
+
+class Refused(pickle.UnpicklingError):
+    """The file names something the loader will not construct."""
 
 
 class Stub:
@@ -70,7 +73,7 @@ def _stub_class(module: str, name: str):
 def _persistent(meta):
     """Stand-in for torch_utils.persistence._reconstruct_persistent_obj: never runs meta['module_src']."""
     if not isinstance(meta, dict) or meta.get("type") != "class" or "class_name" not in meta:
-        raise pickle.UnpicklingError("malformed persistent object")
+        raise Refused("malformed persistent object")
     stub = _stub_class("persistent", str(meta["class_name"]))()
     stub.__setstate__(meta.get("state", {}))
     return stub
@@ -82,7 +85,7 @@ def _load_storage(data: bytes):
 
 def _newobj(cls, *args):
     if not (isinstance(cls, type) and (issubclass(cls, (Stub, EasyDictStub)) or cls in (collections.OrderedDict, dict))):
-        raise pickle.UnpicklingError(f"refusing to construct {cls!r}")
+        raise Refused(f"refusing to construct {cls!r}")
     return cls.__new__(cls)
 
 
@@ -121,7 +124,7 @@ class RestrictedUnpickler(pickle.Unpickler):
             return ALLOWED[(module, name)]
         if module.startswith(STUB_PREFIXES):
             return _stub_class(module, name)
-        raise pickle.UnpicklingError(f"unexpected global {module}.{name}")
+        raise Refused(f"unexpected global {module}.{name} (code in a checkpoint is never run)")
 
 
 def flat_state(stub, prefix="") -> dict:
@@ -174,9 +177,10 @@ def read_checkpoint(path, expected_kind: str | None = None) -> LoadedCheckpoint:
     try:
         with open(path, "rb") as f:
             data = RestrictedUnpickler(f).load()
-    except pickle.UnpicklingError as e:
+    except Refused as e:
         raise CheckpointError(f"{path}: refused to load: {e}") from None
-    except (EOFError, ValueError, TypeError, AttributeError, IndexError, KeyError, RuntimeError, OSError) as e:
+    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError, KeyError,
+            RuntimeError, OSError) as e:
         raise CheckpointError(f"{path}: not a readable generator checkpoint (truncated or corrupt? {type(e).__name__})") from None
     if not isinstance(data, dict) or not isinstance(data.get("G_ema"), Stub):
         raise CheckpointError(f"{path}: no G_ema generator in this file (is it an EG3D-family checkpoint?)")
@@ -218,5 +222,3 @@ def _plain(obj):
         return {k: _plain(v) for k, v in obj.items()}
     return obj
 
-
-copyreg  # the module is referenced by pickles; nothing of it is used here beyond the names above

@@ -226,10 +226,10 @@ class TriPlaneGenerator(nn.Module):
 
     def synthesis(self, ws, origins, dirs, resolution, ray_start=None, ray_end=None, planes=None, background=None,
                   noise_mode="const", deterministic=False, generator=None):
-        """Render rays (N, R*R, 3) of N subjects/views; returns the originals' output dict.
+        """Render rays (N, R*R, 3) of N images in one pass; returns the originals' output dict.
 
         ``planes``/``background`` may be passed precomputed (the per-subject work). ray_start/ray_end
-        default to the checkpoint's range; pass per-view ranges when the camera radius varies.
+        default to the checkpoint's range.
         """
         rk = self.rendering_kwargs
         if planes is None:
@@ -238,10 +238,23 @@ class TriPlaneGenerator(nn.Module):
         end = rk["ray_end"] if ray_end is None else ray_end
         feats, depth, weights = render_rays(self.field(planes), origins, dirs, start, end,
                                             self.render_settings(deterministic), generator)
-        n = origins.shape[0]
-        feature_image = feats.permute(0, 2, 1).reshape(n, feats.shape[-1], resolution, resolution).contiguous()
-        depth_image = depth.permute(0, 2, 1).reshape(n, 1, resolution, resolution)
-        weights_image = weights.permute(0, 2, 1).reshape(n, 1, resolution, resolution)
+        return self.compose(ws, feats, depth, weights, resolution, background, noise_mode, generator)
+
+    def compose(self, ws, feats, depth, weights, resolution, background=None, noise_mode="const", generator=None):
+        """Rendered rays (..., C) / (..., 1) of n = numel / R^2 images -> raw image, mask, depth, final image.
+
+        ``ws`` has one row per image or one per subject (repeated over its images).
+        """
+        rk = self.rendering_kwargs
+        n = feats.shape[:-1].numel() // resolution ** 2
+
+        def image(t):
+            return t.reshape(n, resolution * resolution, -1).permute(0, 2, 1).reshape(n, -1, resolution, resolution)
+
+        feature_image = image(feats).contiguous()
+        depth_image, weights_image = image(depth), image(weights)
+        if ws.shape[0] != n:
+            ws = ws.repeat_interleave(n // ws.shape[0], dim=0)
         if self.decoder.activation == "sigmoid":
             feature_image = feature_image * 2 - 1
         out = {"image_depth": depth_image, "weights_sum": weights_image}
@@ -251,6 +264,8 @@ class TriPlaneGenerator(nn.Module):
             if background is not None:
                 bcg = torch.nn.functional.interpolate(background, size=feature_image.shape[2:], mode="bilinear",
                                                       align_corners=False, antialias=rk.get("sr_antialias", True))
+                if bcg.shape[0] != n:
+                    bcg = bcg.repeat_interleave(n // bcg.shape[0], dim=0)
                 feature_image = feature_image + (1 - weights_image) * bcg
             out["image_mask"] = weights_image * (1 + 2 * 0.001) - 0.001
         if getattr(self, "torgb", None) is not None:

@@ -4,8 +4,8 @@ from __future__ import annotations
 from ..errors import UserError
 from .base import Generator, RenderedViews, Subject, subject_rng  # noqa: F401
 
-AVAILABLE = ("procedural",)
-PLANNED = ("eg3d", "panohead", "spherehead")
+AVAILABLE = ("procedural", "eg3d", "panohead", "spherehead")
+GANS = ("eg3d", "panohead", "spherehead")
 
 
 def make_generator(name: str, checkpoint: str | None = None, options: dict | None = None) -> Generator:
@@ -23,6 +23,14 @@ def make_generator(name: str, checkpoint: str | None = None, options: dict | Non
         if "background" in options:
             options["background"] = tuple(options["background"])
         return ProceduralHeads(ProceduralConfig(**options))
-    if name in PLANNED:
-        raise UserError(f"generator {name!r} is not available in this version; available: {', '.join(AVAILABLE)}")
-    raise UserError(f"unknown generator {name!r}; choose one of: {', '.join(AVAILABLE + PLANNED)}")
+    if name in GANS:
+        from ..gans.checkpoint import OFFICIAL_SOURCES
+        from .gan import GANConfig, GANHeads
+
+        if not checkpoint:
+            raise UserError(f"--gan {name} needs --checkpoint PATH: {OFFICIAL_SOURCES[name]}")
+        unknown = sorted(set(options) - set(GANConfig.__dataclass_fields__))
+        if unknown:
+            raise UserError(f"unknown {name} option(s): {', '.join(unknown)}")
+        return GANHeads(name, checkpoint, GANConfig(**options))
+    raise UserError(f"unknown generator {name!r}; choose one of: {', '.join(AVAILABLE)}")

@@ -28,9 +28,10 @@ STREAM_LATENT, STREAM_CAMERAS, STREAM_RENDER = 0, 1, 2
 class Subject:
     """One sampled subject.
 
-    latent: JSON-ready description recorded with the subject (for a GAN: z, w, truncation).
+    latent: JSON-ready description recorded with the subject (for a GAN: truncation, conditioning).
     truth: ground truth only the generator knows (e.g. injected defects); stored apart from what
     reviewers see. state: the generator's precomputed per-subject data, reused for every view.
+    arrays: numeric data stored with the subject as ``.npy`` fields (for a GAN: z, w, planes).
     """
 
     index: int
@@ -38,6 +39,7 @@ class Subject:
     latent: dict
     truth: dict = field(default_factory=dict)
     state: Any = None
+    arrays: dict = field(default_factory=dict)
 
 
 @dataclass

@@ -1,0 +1,172 @@
+"""GAN checkpoints: refusing bad files, and writing datasets through `datagen sample`."""
+import os
+import pickle
+from collections import OrderedDict
+import sys
+import types
+
+import numpy as np
+import pytest
+import torch
+
+from datagen.cameras import named_views
+from datagen.gans.checkpoint import CheckpointError, RestrictedUnpickler, Stub, read_checkpoint
+from datagen.generators import make_generator
+from datagen.pipeline import run_sample
+from datagen.shards import read_subject
+from datagen.verify import verify_dataset
+from tests.conftest import all_files, gan_fixture, tiny_spec
+
+
+# -- helpers that write official-format pickles ------------------------------------------------------
+
+@pytest.fixture
+def persistence_module(monkeypatch):
+    """A stand-in 'torch_utils.persistence' so tests can write pickles in the official format."""
+    pkg, mod = types.ModuleType("torch_utils"), types.ModuleType("torch_utils.persistence")
+
+    def _reconstruct_persistent_obj(meta):  # never called: only its name is pickled
+        raise AssertionError
+
+    _reconstruct_persistent_obj.__module__ = "torch_utils.persistence"
+    _reconstruct_persistent_obj.__qualname__ = "_reconstruct_persistent_obj"
+    mod._reconstruct_persistent_obj = _reconstruct_persistent_obj
+    pkg.persistence = mod
+    monkeypatch.setitem(sys.modules, "torch_utils", pkg)
+    monkeypatch.setitem(sys.modules, "torch_utils.persistence", mod)
+    return mod
+
+
+class Persistent:
+    def __init__(self, fn, class_name, state):
+        self.fn, self.meta = fn, {"type": "class", "version": 6, "module_src": "<omitted>",
+                                  "class_name": class_name, "state": state}
+
+    def __reduce__(self):
+        return (self.fn, (self.meta,))
+
+
+def repickle(stub, fn):
+    """A loaded stub tree -> an official-format object tree (every module persistent)."""
+    def conv(v):
+        if isinstance(v, Stub):
+            return repickle(v, fn)
+        if isinstance(v, dict):  # OrderedDicts stay ordered; our EasyDict stand-ins become plain dicts
+            return (OrderedDict if isinstance(v, OrderedDict) else dict)((k, conv(x)) for k, x in v.items())
+        return v
+    return Persistent(fn, stub.class_name.rsplit(".", 1)[-1], {k: conv(v) for k, v in stub.state.items()})
+
+
+def load_stub(path):
+    with open(path, "rb") as f:
+        return RestrictedUnpickler(f).load()["G_ema"]
+
+
+# -- bad input ------------------------------------------------------------------------------------------
+
+def test_round_trip_of_the_test_pickler(persistence_module, tmp_path):
+    g = load_stub(gan_fixture("eg3d", ".pkl"))
+    path = tmp_path / "again.pkl"
+    path.write_bytes(pickle.dumps({"G_ema": repickle(g, persistence_module._reconstruct_persistent_obj)}))
+    assert read_checkpoint(path, "eg3d").kind == "eg3d"
+
+
+def test_mismatched_shapes_are_named(persistence_module, tmp_path):
+    g = load_stub(gan_fixture("eg3d", ".pkl"))
+    dec = g.state["_modules"]["decoder"].state["_modules"]["net"].state["_modules"]["0"]
+    dec.state["_parameters"]["weight"] = torch.nn.Parameter(torch.zeros(64, 31), requires_grad=False)
+    path = tmp_path / "bad-shape.pkl"
+    path.write_bytes(pickle.dumps({"G_ema": repickle(g, persistence_module._reconstruct_persistent_obj)}))
+    with pytest.raises(CheckpointError, match=r"bad-shape.pkl: shape mismatch for decoder.net.0.weight"):
+        read_checkpoint(path, "eg3d")
+
+
+def test_unexpected_globals_are_refused_not_run(tmp_path):
+    marker = tmp_path / "ran"
+
+    class Evil:
+        def __reduce__(self):
+            return (os.system, (f"touch {marker}",))
+
+    path = tmp_path / "evil.pkl"
+    path.write_bytes(pickle.dumps({"G_ema": Evil()}))
+    with pytest.raises(CheckpointError, match=r"evil.pkl: refused to load: unexpected global (posix|os)\.system"):
+        read_checkpoint(path, "eg3d")
+    assert not marker.exists()
+
+
+def test_truncated_checkpoint(tmp_path):
+    data = gan_fixture("panohead", ".pkl").read_bytes()
+    path = tmp_path / "cut.pkl"
+    path.write_bytes(data[: len(data) // 3])
+    with pytest.raises(CheckpointError, match=r"cut.pkl: not a readable generator checkpoint"):
+        read_checkpoint(path, "panohead")
+
+
+def test_non_generator_pickle(tmp_path):
+    path = tmp_path / "dict.pkl"
+    path.write_bytes(pickle.dumps({"weights": [1, 2, 3]}))
+    with pytest.raises(CheckpointError, match=r"dict.pkl: no G_ema generator"):
+        read_checkpoint(path)
+
+
+@pytest.mark.parametrize("model, asked", [("eg3d", "spherehead"), ("spherehead", "panohead"), ("panohead", "eg3d")])
+def test_checkpoint_for_another_generator(model, asked):
+    with pytest.raises(CheckpointError, match=f"this is a {model} checkpoint, not {asked}"):
+        read_checkpoint(gan_fixture(model, ".pkl"), asked)
+
+
+def test_missing_checkpoint_says_where_it_comes_from(tmp_path):
+    with pytest.raises(CheckpointError, match="not found.*github.com/lhyfst/SphereHead"):
+        read_checkpoint(tmp_path / "nope.pkl", "spherehead")
+
+
+# -- sampling datasets ----------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("model, protocol", [("eg3d", "frontal"), ("panohead", "360"), ("spherehead", "360")])
+def test_gan_dataset_is_valid_and_reproducible(model, protocol, tmp_path):
+    ckpt = str(gan_fixture(model, ".pkl"))
+    spec = tiny_spec(tmp_path / "a", gan=model, checkpoint=ckpt, protocol=protocol, subjects=2, views=3,
+                     resolution=64, generator_options={"save_planes": 16})
+    run_sample(spec, progress=False)
+    report = verify_dataset(spec.out)
+    assert report["problems"] == [] and report["subjects"] == 2
+    s = read_subject(spec.out, "subj00000001")
+    meta = s.metadata
+    assert meta["generator"]["name"] == model and len(meta["generator"]["checkpoint_sha256"]) == 64
+    assert meta["truncation_psi"] == 0.7 and meta["pivot"] == ([0.0, 0.0, 0.2] if model == "eg3d" else [0.0] * 3)
+    assert s.arrays["z"].shape == (512,) and s.arrays["w"].shape == (512,)
+    assert s.arrays["planes"].dtype == np.float16 and s.arrays["planes"].shape[-2:] == (16, 16)
+    assert s.rgb[0].shape == (64, 64, 3) and s.alpha[0].shape == (64, 64)
+    assert all(np.isfinite(d).all() for d in s.depth)
+    run_sample(tiny_spec(tmp_path / "b", **{k: v for k, v in spec.__dict__.items() if k != "out"}), progress=False)
+    assert all_files(spec.out) == all_files(tmp_path / "b")
+
+
+def test_z_is_seeded_by_dataset_seed_and_subject():
+    g = make_generator("eg3d", str(gan_fixture("eg3d", ".pkl")))
+    a, b, c = g.sample_subject(5, 1), g.sample_subject(5, 1), g.sample_subject(5, 2)
+    np.testing.assert_array_equal(a.arrays["z"], b.arrays["z"])
+    assert not np.array_equal(a.arrays["z"], c.arrays["z"])
+
+
+@pytest.mark.parametrize("radius", [2.2, 2.7, 3.3])
+def test_ray_range_follows_the_radius(radius):
+    """At any radius the rendered head is where it is at 2.7: the mask barely changes."""
+    g = make_generator("panohead", str(gan_fixture("panohead", ".pkl")), {"deterministic": True})
+    s = g.sample_subject(0, 0)
+    ref = g.render(s, named_views(["front"], radius=2.7), 32).alpha
+    out = g.render(s, named_views(["front"], radius=radius, fov=18.83 * 2.7 / radius), 32)
+    assert np.isfinite(out.rgb).all() and np.isfinite(out.depth).all()
+    assert abs(out.alpha.mean() - ref.mean()) < 0.05
+    inside = out.alpha > 0.5
+    assert np.all(np.abs(out.depth[inside] - radius) < 0.6)
+
+
+def test_solid_background_with_the_mask():
+    g = make_generator("spherehead", str(gan_fixture("spherehead", ".pkl")), {"background": "white"})
+    s = g.sample_subject(0, 0)
+    out = g.render(s, named_views(["back"]), 32)
+    expected = out.rgb * 0 + 1.0
+    weight = 1 - out.alpha[..., None]
+    assert np.all(out.rgb >= weight * expected - 1e-5)  # at least the background's share of white
