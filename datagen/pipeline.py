@@ -232,7 +232,17 @@ def _run_ray(spec: JobSpec, shards: list[int], address: str | None, threads: int
     level = ray_logger.level
     started = not ray.is_initialized()
     if started:
-        # A local instance started here reports no usage statistics, serves no dashboard and keeps
+        target = address or os.environ.get("RAY_ADDRESS") or ""
+        host, sep, port = target.split("://", 1)[-1].rpartition(":")
+        if sep and port.isdigit():
+            # Ray itself keeps retrying an address that does not answer, for many minutes.
+            import socket
+
+            try:
+                socket.create_connection((host.strip("[]") or "127.0.0.1", int(port)), timeout=10).close()
+            except OSError as e:
+                raise UserError(f"cannot reach the Ray cluster at {target}: {e.strerror or e}") from None
+        # A local instance started here reports no usage statistics, has no dashboard UI and keeps
         # its workers' output and its own informational messages off the terminal.
         set_usage_env = "RAY_USAGE_STATS_ENABLED" not in os.environ
         if set_usage_env:
@@ -241,8 +251,9 @@ def _run_ray(spec: JobSpec, shards: list[int], address: str | None, threads: int
             ray.init(address=address, include_dashboard=False, log_to_driver=False,
                      logging_level=logging.ERROR)
         except Exception as e:
+            ray.shutdown()  # whatever a failed start left running
             ray_logger.setLevel(level)
-            raise UserError(f"cannot start or reach Ray ({address or os.environ.get('RAY_ADDRESS') or 'local'}): "
+            raise UserError(f"cannot start or reach Ray ({target or 'local'}): "
                             f"{str(e).splitlines()[0] if str(e) else type(e).__name__}") from e
         finally:
             if set_usage_env:

@@ -4,7 +4,8 @@ A dataset folder holds::
 
     index.json                 the plan: settings and which subjects each shard holds
     shard-000000.tar           one tar sample per subject (key = subject id, no dots)
-    shard-000000.json          sidecar, written last: counts and sha256 of the tar and truth file
+    shard-000000.json          sidecar, written last: counts, sha256 of the tar and truth file, and
+                               each subject's byte range [start, end) in the tar (random access)
     truth/shard-000000.json    ground truth reviewers must not see (e.g. injected defects)
 
 Fields of a subject sample ``<id>``: ``<id>.json`` (metadata and provenance), and per view i
@@ -165,10 +166,12 @@ class ShardWriter:
         self._file = open(self.tmp, "wb")
         self._tar = tarfile.open(fileobj=self._file, mode="w", format=tarfile.USTAR_FORMAT)
         self.subjects: list[str] = []
+        self.offsets: dict[str, list[int]] = {}
         self.truth: dict = {}
         self.n_files = 0
 
     def add_subject(self, key: str, members: list[tuple[str, bytes]], truth: dict | None = None) -> None:
+        start = self._tar.offset
         for name, data in members:
             info = tarfile.TarInfo(name)
             info.size = len(data)
@@ -178,6 +181,7 @@ class ShardWriter:
             info.uname = info.gname = ""
             self._tar.addfile(info, io.BytesIO(data))
         self.subjects.append(key)
+        self.offsets[key] = [start, self._tar.offset]
         self.n_files += len(members)
         if truth is not None:
             self.truth[key] = truth
@@ -195,6 +199,7 @@ class ShardWriter:
             "tar_bytes": self.final.stat().st_size,
             "tar_sha256": sha256_file(self.final),
             "subjects": self.subjects,
+            "offsets": self.offsets,
             "files": self.n_files,
         }
         if self.truth:
@@ -294,6 +299,26 @@ def iter_tar_samples(path):
         raise DatasetError(f"{path}: corrupt or truncated shard ({e})") from None
 
 
+def read_fields(root, shard: int, key: str) -> dict:
+    """One subject's raw fields {field: bytes}, read by its byte range from the sidecar (no scan)."""
+    side = read_sidecar(root, shard)
+    path = tar_path(root, shard)
+    if side is None:
+        raise DatasetError(f"{path}: incomplete shard (no sidecar)")
+    try:
+        start, end = side["offsets"][key]
+    except KeyError:
+        raise DatasetError(f"{path}: no subject {key} in this shard") from None
+    try:
+        with open(path, "rb") as f:
+            f.seek(start)
+            blob = f.read(end - start)
+        with tarfile.open(fileobj=io.BytesIO(blob), mode="r:") as tar:
+            return {m.name.partition(".")[2]: tar.extractfile(m).read() for m in tar if m.isfile()}
+    except (tarfile.TarError, EOFError, OSError) as e:
+        raise DatasetError(f"{path}: corrupt subject {key} ({e})") from None
+
+
 def decode_sample(key: str, fields: dict, where="") -> SubjectSample:
     try:
         meta = json.loads(fields["json"])
@@ -310,15 +335,12 @@ def decode_sample(key: str, fields: dict, where="") -> SubjectSample:
 
 
 def read_subject(root, key: str) -> SubjectSample:
-    """Read one subject by id through the dataset index."""
+    """Read one subject by id through the dataset index and the shard's byte ranges."""
     index = read_index(root)
     for shard in index["shards"]:
         if key in shard["subjects"]:
-            path = Path(root) / f"{shard['name']}.tar"
-            if not path.exists():
-                raise DatasetError(f"{path}: shard holding {key} is missing (not generated yet?)")
-            for k, fields in iter_tar_samples(path):
-                if k == key:
-                    return decode_sample(k, fields, str(path))
-            raise DatasetError(f"{path}: subject {key} not found in its shard")
+            i = int(shard["name"].split("-")[1])
+            if not tar_path(root, i).exists():
+                raise DatasetError(f"{tar_path(root, i)}: shard holding {key} is missing (not generated yet?)")
+            return decode_sample(key, read_fields(root, i, key), str(tar_path(root, i)))
     raise DatasetError(f"{Path(root) / INDEX_NAME}: no subject {key} in this dataset")

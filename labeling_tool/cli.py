@@ -1,11 +1,183 @@
-"""The ``label-tool`` command line (the review tool is not in this version yet)."""
+"""The ``label-tool`` command line: auto, review, compile, stats."""
+from __future__ import annotations
+
+import argparse
+import json
 import sys
+from pathlib import Path
+
+from datagen.errors import UserError
+from datagen.shards import read_index
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line, non-zero exit
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="label-tool", description="Curate a generated head dataset.")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    a = sub.add_parser("auto", help="score every subject with automatic pre-flags (worst first)")
+    a.add_argument("dataset")
+    a.add_argument("--workers", type=int, default=1)
+    a.add_argument("--top", type=int, default=10, help="print the N worst subjects")
+    a.add_argument("--quiet", action="store_true")
+
+    r = sub.add_parser("review", help="open the review window")
+    r.add_argument("target", help="a dataset folder, or one shard-XXXXXX.tar in it")
+    r.add_argument("--reviewer", required=True)
+    r.add_argument("--labels", default="labels", help="folder of reviewers' event logs (default: ./labels)")
+    r.add_argument("--queue", default="all", choices=("all", "worst", "suspicious"),
+                   help="all (dataset order), worst (by pre-flag score), suspicious (flagged only)")
+    r.add_argument("--triage", action="store_true", help="start in triage mode (many subjects per screen)")
+    r.add_argument("--columns", type=int, default=8)
+    r.add_argument("--off-screen", action="store_true", help="no window (scripted use)")
+    r.add_argument("--keys", default="", help="off-screen: keys to press, space separated, then exit")
+    r.add_argument("--screenshot", help="off-screen: save a screenshot after the keys")
+
+    c = sub.add_parser("compile", help="merge reviewers' logs into a new, versioned manifest")
+    c.add_argument("dataset")
+    c.add_argument("--labels", default="labels")
+    c.add_argument("--out", help="manifest file (default: manifests/<dataset>-v<N+1>.json)")
+    c.add_argument("--policy", default="any-bad", choices=("any-bad", "majority"))
+    c.add_argument("--unreviewed", default="accept", choices=("accept", "reject"))
+    c.add_argument("--test-count", type=int, default=None,
+                   help="held-out test subjects (default: min(100, accepted/10); the paper holds out 100)")
+    c.add_argument("--parent", help="the manifest this version revises")
+
+    s = sub.add_parser("stats", help="counts per reason and reviewer, agreement between reviewers")
+    s.add_argument("dataset")
+    s.add_argument("--labels", default="labels")
+    s.add_argument("--json", action="store_true")
+    return p
+
+
+def build_queue(target: str, queue: str):
+    """The review queue for a dataset or one of its shards, in dataset order or by pre-flag score."""
+    from .gui import QueueItem
+
+    path = Path(target)
+    shard_only = None
+    if path.suffix == ".tar":
+        shard_only, path = path.stem, path.parent
+    index = read_index(path)
+    items = [QueueItem(s, sh["name"]) for sh in index["shards"] for s in sh["subjects"]
+             if shard_only is None or sh["name"] == shard_only]
+    if shard_only is not None and not items:
+        raise UserError(f"{target}: not a shard of the dataset in {path}")
+    try:
+        from .preflags import read_preflags
+
+        report = read_preflags(path)
+    except (FileNotFoundError, UserError):
+        report = None
+    if report is None:
+        if queue != "all":
+            raise UserError(f"--queue {queue} needs pre-flags: run 'label-tool auto {path}' first")
+        return path, items
+    scores = {r["subject"]: r for r in report["subjects"]}
+    for it in items:
+        r = scores.get(it.subject)
+        if r:
+            it.score = r["score"]
+            it.flags = ", ".join(f"{k} {r['detectors'][k]['score']:.2f}" for k in r["flags"])
+    if queue in ("worst", "suspicious"):
+        items.sort(key=lambda it: -(it.score or 0.0))
+    if queue == "suspicious":
+        items = [it for it in items if it.flags]
+    return path, items
+
+
+def _auto(args) -> int:
+    from .preflags import score_dataset, write_preflags
+
+    report = score_dataset(args.dataset, progress=not args.quiet, workers=args.workers)
+    path = write_preflags(args.dataset, report)
+    flagged = [r for r in report["subjects"] if r["flags"]]
+    print(f"scored {len(report['subjects'])} subjects, {len(flagged)} flagged -> {path}")
+    for r in report["subjects"][: args.top]:
+        why = "; ".join(r["detectors"][k]["why"] for k in r["flags"]) or "no flag"
+        print(f"  {r['score']:.2f}  {r['subject']}  {why}")
+    return 0
+
+
+def _review(args) -> int:
+    from .gui import ReviewApp
+
+    root, items = build_queue(args.target, args.queue)
+    app = ReviewApp(root, items, args.reviewer, args.labels, off_screen=args.off_screen, columns=args.columns,
+                    start_in_triage=args.triage)
+    for problem in app.log.problems:
+        print(f"note: {problem}", file=sys.stderr)
+    if args.off_screen:
+        for key in args.keys.split():
+            app.press(key)
+        if args.screenshot:
+            app.screenshot(args.screenshot)
+        app.close()
+    else:
+        app.run()
+    verdicts = app.log.verdicts()
+    print(f"{args.reviewer}: {sum(1 for i in items if i.subject in verdicts)}/{len(items)} reviewed; log {app.log.path}")
+    return 0
+
+
+def _compile(args) -> int:
+    from .manifest import compile_manifest, next_version_path, write_manifest
+
+    manifest = compile_manifest(args.dataset, args.labels, args.policy, args.unreviewed, args.test_count, args.parent)
+    out = Path(args.out) if args.out else next_version_path("manifests", args.dataset)
+    write_manifest(manifest, out)
+    h = manifest["header"]
+    for problem in h["log_problems"]:
+        print(f"problem: {problem}", file=sys.stderr)
+    c = h["counts"]
+    print(f"wrote {out}: {c['accepted']} accepted ({c['train']} train, {c['test']} test), {c['rejected']} rejected, "
+          f"{c['reviewed']}/{c['subjects']} reviewed, {c['conflicts']} conflicts (policy {h['policy']}, "
+          f"unreviewed {h['unreviewed']})")
+    for s in h["conflicts"][:20]:
+        print(f"  conflict: {s}")
+    return 0
+
+
+def _stats(args) -> int:
+    from .manifest import review_stats
+
+    st = review_stats(args.dataset, args.labels)
+    if args.json:
+        print(json.dumps(st, indent=1, sort_keys=True))
+        return 0
+    for problem in st["log_problems"]:
+        print(f"problem: {problem}")
+    print("per reviewer:")
+    for r, v in st["reviewers"].items():
+        print(f"  {r}: {v['reviewed']} reviewed ({v['good']} good, {v['bad']} bad), {v['events']} events, "
+              f"{v['undos']} undos")
+    print("bad verdicts per reason:")
+    for k, n in st["reasons"].items():
+        print(f"  {k}: {n}")
+    print("agreement:")
+    for a in st["agreement"] or [{"reviewers": ["-", "-"], "subjects": 0, "agreement": 0, "cohen_kappa": 0}]:
+        print(f"  {' vs '.join(a['reviewers'])}: {a['subjects']} shared subjects, agreement {a['agreement']:.2f}, "
+              f"Cohen's kappa {a['cohen_kappa']:.2f}")
+    return 0
+
+
+COMMANDS = {"auto": _auto, "review": _review, "compile": _compile, "stats": _stats}
 
 
 def main(argv=None) -> int:
-    print("label-tool: not yet available in this version (review GUI, pre-flags and manifests are coming)",
-          file=sys.stderr)
-    return 2
+    args = build_parser().parse_args(argv)
+    try:
+        return COMMANDS[args.command](args)
+    except UserError as e:
+        print(f"label-tool {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"label-tool {args.command}: interrupted (every verdict so far is saved)", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

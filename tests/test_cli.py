@@ -96,9 +96,10 @@ def test_verify_failure_exits_nonzero(tiny_dataset, tmp_path, capsys):
 
 def test_console_scripts_exist():
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    for module, word in (("labeling_tool.cli", "label-tool"), ("panolam.cli", "panolam")):
-        r = subprocess.run([sys.executable, "-m", module], capture_output=True, text=True, env=env)
-        assert r.returncode == 2 and word in r.stderr and "not yet" in r.stderr
+    r = subprocess.run([sys.executable, "-m", "panolam.cli"], capture_output=True, text=True, env=env)
+    assert r.returncode == 2 and "panolam" in r.stderr and "not yet" in r.stderr
+    r = subprocess.run([sys.executable, "-m", "labeling_tool.cli", "--help"], capture_output=True, text=True, env=env)
+    assert r.returncode == 0 and "compile" in r.stdout
     r = subprocess.run([sys.executable, "-m", "datagen.cli", "--help"], capture_output=True, text=True, env=env)
     assert r.returncode == 0 and "sample" in r.stdout
 

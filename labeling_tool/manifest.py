@@ -1,0 +1,182 @@
+"""Curated manifests: all reviewers' verdicts merged under a stated policy, written once, never edited.
+
+A manifest is one JSON file (readable with ``json.load`` or ``pandas.json_normalize``)::
+
+    {"header": {"format", "version", "parent_version", "policy", "unreviewed", "test_count",
+                "counts", "conflicts", "reviewers", "dataset", "dataset_index_sha256",
+                "log_problems", "created"},
+     "subjects": [{"subject", "shard", "verdict", "reasons", "reviewers", "votes", "split"}, ...]}
+
+verdict: ``accepted`` / ``rejected``; split: ``train`` / ``test`` for accepted subjects (None for
+rejected). The test split is the ``test_count`` accepted subjects with the smallest
+sha256(subject id): deterministic, and independent of reviewing order. The version is the file's
+name without extension; a new review produces a new file (``--parent`` names the one it revises).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import re
+from datetime import datetime, timezone
+from pathlib import Path
+
+from datagen.errors import UserError
+from datagen.shards import INDEX_NAME, atomic_write, dumps, read_index
+
+from .events import read_logs, verdicts
+
+FORMAT = "panolam-manifest/1"
+POLICIES = ("any-bad", "majority")
+
+
+def subject_hash(subject: str) -> str:
+    return hashlib.sha256(subject.encode()).hexdigest()
+
+
+def merge(votes: dict[str, tuple[str, tuple]], policy: str, unreviewed: str) -> tuple[str, list[str]]:
+    """Decide one subject from {reviewer: (good|bad, reasons)} -> (accepted|rejected, reasons)."""
+    bad = {r: v for r, v in votes.items() if v[0] == "bad"}
+    reasons = sorted({x for _, rs in bad.values() for x in rs})
+    if not votes:
+        return ("accepted" if unreviewed == "accept" else "rejected"), []
+    if policy == "any-bad":
+        return ("rejected" if bad else "accepted"), reasons
+    # majority: strictly more bad than good votes rejects; a tie rejects (when in doubt, leave it out)
+    return ("rejected" if 2 * len(bad) >= len(votes) else "accepted"), reasons
+
+
+def compile_manifest(dataset, labels_dir, policy: str = "any-bad", unreviewed: str = "accept",
+                     test_count: int | None = None, parent=None) -> dict:
+    """Build the manifest dict (not written); see the module docstring."""
+    if policy not in POLICIES:
+        raise UserError(f"unknown policy {policy!r}; choose one of: {', '.join(POLICIES)}")
+    if unreviewed not in ("accept", "reject"):
+        raise UserError("--unreviewed must be accept or reject")
+    index = read_index(dataset)
+    index_sha = hashlib.sha256((Path(dataset) / INDEX_NAME).read_bytes()).hexdigest()
+    logs, problems = read_logs(labels_dir)
+    per_reviewer = {r: {s: (e.action, e.reasons) for s, e in verdicts(ev).items() if e.action in ("good", "bad")}
+                    for r, ev in logs.items()}
+    known = {s for shard in index["shards"] for s in shard["subjects"]}
+    strangers = sorted({s for v in per_reviewer.values() for s in v} - known)
+    if strangers:
+        problems.append(f"{len(strangers)} reviewed subject(s) are not in this dataset (e.g. {strangers[0]})")
+    rows, conflicts = [], []
+    for shard in index["shards"]:
+        for s in shard["subjects"]:
+            votes = {r: v[s] for r, v in per_reviewer.items() if s in v}
+            verdict, reasons = merge(votes, policy, unreviewed)
+            if len({v[0] for v in votes.values()}) > 1:
+                conflicts.append(s)
+            rows.append({"subject": s, "shard": shard["name"], "verdict": verdict, "reasons": reasons,
+                         "reviewers": sorted(votes), "votes": {r: v[0] for r, v in sorted(votes.items())},
+                         "split": None})
+    accepted = [r for r in rows if r["verdict"] == "accepted"]
+    if test_count is None:
+        test_count = min(100, max(1, len(accepted) // 10)) if accepted else 0
+    test = {r["subject"] for r in sorted(accepted, key=lambda r: subject_hash(r["subject"]))[:test_count]}
+    for r in accepted:
+        r["split"] = "test" if r["subject"] in test else "train"
+    parent_version = None
+    if parent:
+        parent_manifest = read_manifest(parent)
+        parent_version = parent_manifest["header"]["version"]
+    counts = {
+        "subjects": len(rows),
+        "accepted": len(accepted),
+        "rejected": len(rows) - len(accepted),
+        "reviewed": sum(1 for r in rows if r["reviewers"]),
+        "train": sum(1 for r in accepted if r["split"] == "train"),
+        "test": len(test),
+        "conflicts": len(conflicts),
+    }
+    header = {
+        "format": FORMAT,
+        "parent_version": parent_version,
+        "policy": policy,
+        "unreviewed": unreviewed,
+        "test_count": test_count,
+        "counts": counts,
+        "conflicts": conflicts,
+        "reviewers": sorted(logs),
+        "dataset": str(Path(dataset).resolve().name),
+        "dataset_index_sha256": index_sha,
+        "log_problems": problems,
+    }
+    return {"header": header, "subjects": rows}
+
+
+VERSION_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+
+
+def write_manifest(manifest: dict, out) -> Path:
+    """Publish a manifest under ``out`` (its stem is the version); an existing file is never replaced."""
+    out = Path(out)
+    if out.suffix != ".json":
+        raise UserError(f"{out}: manifests are JSON files; name it <name>-v<N>.json")
+    if not VERSION_NAME.match(out.stem):
+        raise UserError(f"{out}: the version (file name) may use letters, digits, '.', '_' and '-'")
+    if out.exists():
+        raise UserError(f"{out} already exists; published manifests are never edited, write a new version")
+    header = dict(manifest["header"], version=out.stem,
+                  created=datetime.now(timezone.utc).isoformat(timespec="seconds"))
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write(out, dumps({"header": header, "subjects": manifest["subjects"]}))
+    except OSError as e:
+        raise UserError(f"cannot write {out}: {e.strerror}") from None
+    return out
+
+
+def read_manifest(path) -> dict:
+    path = Path(path)
+    try:
+        m = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise UserError(f"{path}: no such manifest") from None
+    except ValueError as e:
+        raise UserError(f"{path}: not a valid manifest ({e})") from None
+    if not isinstance(m, dict) or m.get("header", {}).get("format") != FORMAT:
+        raise UserError(f"{path}: not a {FORMAT} manifest")
+    return m
+
+
+def next_version_path(manifests_dir, dataset) -> Path:
+    """manifests/<dataset>-v<N+1>.json after the highest existing version of that dataset."""
+    name = Path(dataset).resolve().name
+    found = [int(m.group(1)) for p in Path(manifests_dir).glob(f"{name}-v*.json")
+             if (m := re.fullmatch(rf"{re.escape(name)}-v(\d+)", p.stem))]
+    return Path(manifests_dir) / f"{name}-v{max(found, default=0) + 1}.json"
+
+
+def review_stats(dataset, labels_dir) -> dict:
+    """Counts per reason and per reviewer, and agreement between each pair of reviewers."""
+    read_index(dataset)
+    logs, problems = read_logs(labels_dir)
+    per = {r: {s: e for s, e in verdicts(ev).items() if e.action in ("good", "bad")} for r, ev in logs.items()}
+    reasons: dict[str, int] = {}
+    reviewers = {}
+    for r, v in per.items():
+        bad = [e for e in v.values() if e.action == "bad"]
+        for e in bad:
+            for x in e.reasons:
+                reasons[x] = reasons.get(x, 0) + 1
+        reviewers[r] = {"reviewed": len(v), "good": len(v) - len(bad), "bad": len(bad),
+                        "events": len(logs[r]), "undos": sum(1 for e in logs[r] if e.action == "undo")}
+    agreement = []
+    names = sorted(per)
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            both = sorted(set(per[a]) & set(per[b]))
+            if not both:
+                continue
+            xa = [per[a][s].action == "bad" for s in both]
+            xb = [per[b][s].action == "bad" for s in both]
+            agree = sum(p == q for p, q in zip(xa, xb)) / len(both)
+            pa, pb = sum(xa) / len(both), sum(xb) / len(both)
+            chance = pa * pb + (1 - pa) * (1 - pb)
+            kappa = (agree - chance) / (1 - chance) if chance < 1 else 1.0
+            agreement.append({"reviewers": [a, b], "subjects": len(both), "agreement": round(agree, 4),
+                              "cohen_kappa": round(kappa, 4)})
+    return {"reasons": dict(sorted(reasons.items())), "reviewers": reviewers, "agreement": agreement,
+            "log_problems": problems}
