@@ -53,12 +53,11 @@ def build_dataset(root: Path, subjects: int, resolution: int, distinct: int = 4)
 
 
 def measure(dataset: Path, window, repeats: int) -> dict:
-    from labeling_tool.cli import build_queue
-    from labeling_tool.gui import ReviewApp
+    from labeling_tool.gui import QueueItem, ReviewApp
 
     labels = Path(tempfile.mkdtemp())
     t0 = time.perf_counter()
-    _, queue = build_queue(str(dataset), "all")
+    queue = [QueueItem(s, sh["name"]) for sh in read_index(dataset)["shards"] for s in sh["subjects"]]
     app = ReviewApp(dataset, queue, "bench", labels, off_screen=True, window_size=window)
     app.plotter.render_window.Render()
     open_s = time.perf_counter() - t0

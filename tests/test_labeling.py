@@ -1,0 +1,250 @@
+"""Curation: event logs, headless review sessions driven by keys, resume after kill -9, manifests."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pv = pytest.importorskip("pyvista", reason="the review GUI needs pyvista")
+
+from labeling_tool.cli import build_queue, main as label_main  # noqa: E402
+from labeling_tool.events import EventLog, read_log, read_logs, verdicts  # noqa: E402
+from labeling_tool.gui import ReviewApp  # noqa: E402
+from labeling_tool.manifest import compile_manifest, read_manifest, subject_hash, write_manifest  # noqa: E402
+from datagen.errors import UserError  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def app_factory(tiny_dataset, tmp_path):
+    apps = []
+
+    def make(reviewer="alice", labels=None, **kw):
+        _, queue = build_queue(str(tiny_dataset), "all")
+        app = ReviewApp(tiny_dataset, queue, reviewer, labels or tmp_path / "labels", off_screen=True,
+                        window_size=(640, 360), **kw)
+        apps.append(app)
+        return app
+    yield make
+    for a in apps:
+        a.close()
+
+
+def actions(labels, reviewer):
+    events, problems = read_log(Path(labels) / f"{reviewer}.jsonl")
+    assert problems == []
+    return [(e.subject, e.action, e.reasons) for e in events]
+
+
+def test_keys_produce_events(app_factory, tmp_path):
+    app = app_factory()
+    for k in ["g", "2", "z", "3"]:
+        app.press(k)
+    assert actions(tmp_path / "labels", "alice") == [
+        ("subj00000000", "good", ()), ("subj00000001", "bad", ("broken_back",)),
+        ("subj00000002", "undo", ()), ("subj00000001", "bad", ("artifacts",))]
+    v = app.log.verdicts()
+    assert v["subj00000000"].action == "good" and v["subj00000001"].reasons == ("artifacts",)
+    assert app.pos == 2
+
+
+def test_navigation_and_next_unreviewed(app_factory):
+    app = app_factory()
+    app.press("Right")
+    app.press("Right")
+    assert app.pos == 2
+    app.press("Left")
+    assert app.pos == 1
+    app.press("g")  # reviews subject 1, moves to 2
+    app.press("Left")
+    app.press("Left")
+    app.press("u")  # first subject without a verdict after position 0 -> 2
+    assert app.pos == 2
+
+
+def test_default_vtk_and_pyvista_keys_do_not_fire(app_factory):
+    app = app_factory()
+    actor = app._grid_actors[0]
+    for k in ["w", "s", "q", "e", "r", "f", "3", "plus", "Up"]:
+        app.press(k)
+    assert actor.GetProperty().GetRepresentation() == 2  # still surface, not wireframe
+    assert app.plotter.render_window is not None  # 'q' / 'e' did not close the window
+    assert app.mode == "review"
+
+
+def test_screenshot_is_not_blank_and_hud_shows_state(app_factory):
+    app = app_factory()
+    app.press("g")
+    img = app.screenshot()
+    assert img.shape[:2] == (360, 640) and img.std() > 20
+    assert "subj00000001" in app.hud_text() and "reviewed 1, left 2" in app.hud_text()
+
+
+def test_help_and_3d_toggles(app_factory):
+    app = app_factory()
+    app.press("h")
+    assert app.show_help
+    app.press("v")
+    assert app.mode == "3d" and "cloud" in app.plotter.actors
+    assert app.screenshot().std() > 5
+    app.press("v")
+    assert app.mode == "review" and "cloud" not in app.plotter.actors
+
+
+def test_triage_marks_and_commits_a_page(app_factory, tmp_path):
+    app = app_factory(start_in_triage=True)
+    assert app.mode == "triage" and len(app._triage_actors) == 3
+    app.press("Right")
+    app.press("1")          # subject 1 bad (multiple faces)
+    app._on_click((2 * 1.06, 0.0, 0.0))  # a click on cell 2 toggles its mark
+    assert app.triage_marks == {"subj00000001": "multiple_faces", "subj00000002": "artifacts"}
+    app._on_click((2 * 1.06, 0.0, 0.0))
+    assert "subj00000002" not in app.triage_marks
+    app.press("Return")
+    assert actions(tmp_path / "labels", "alice") == [
+        ("subj00000000", "good", ()), ("subj00000001", "bad", ("multiple_faces",)), ("subj00000002", "good", ())]
+
+
+def test_reopening_resumes_where_the_reviewer_left_off(app_factory, tmp_path):
+    app = app_factory()
+    app.press("g")
+    app.press("s")
+    app.close()
+    again = app_factory()
+    assert again.pos == 2
+
+
+def test_kill_9_mid_session_loses_and_duplicates_nothing(tiny_dataset, tmp_path):
+    labels = tmp_path / "labels"
+    script = (
+        "import sys, time\n"
+        "from labeling_tool.cli import build_queue\n"
+        "from labeling_tool.gui import ReviewApp\n"
+        f"_, q = build_queue({str(tiny_dataset)!r}, 'all')\n"
+        f"app = ReviewApp({str(tiny_dataset)!r}, q * 40, 'carol', {str(labels)!r}, off_screen=True, window_size=(320, 200))\n"
+        "keys = ['g', '1', 'Right'] * 1000\n"
+        "for k in keys:\n"
+        "    app.press(k)\n"
+        "    time.sleep(0.002)\n"
+    )
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-c", script], env=env, stderr=subprocess.DEVNULL)
+    log = labels / "carol.jsonl"
+    deadline = time.time() + 120
+    while time.time() < deadline and (not log.exists() or log.read_bytes().count(b"\n") < 10):
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    events, problems = read_log(log)
+    assert len(events) >= 10
+    assert all("partial last line" in p for p in problems) and len(problems) <= 1
+    assert [e.seq for e in events] == list(range(1, len(events) + 1))  # nothing lost, nothing twice
+    reopened = EventLog(labels, "carol")
+    nxt = reopened.append("subj00000000", "shard-000000", "good")
+    reopened.close()
+    assert nxt.seq == len(events) + 1
+    events2, problems2 = read_log(log)
+    assert [e.seq for e in events2] == list(range(1, len(events) + 2)) and len(problems2) == len(problems)
+
+
+def test_corrupt_and_partial_lines_are_reported(tmp_path):
+    log = EventLog(tmp_path, "dave")
+    log.append("subj00000000", "shard-000000", "good")
+    log.close()
+    path = tmp_path / "dave.jsonl"
+    with open(path, "ab") as f:
+        f.write(b'{"not": "an event"}\n{"seq": 3, "action": "go')
+    events, problems = read_log(path)
+    assert len(events) == 1
+    assert any(":2: unreadable event" in p for p in problems)
+    assert any(":3: partial last line" in p for p in problems)
+    _, all_problems = read_logs(tmp_path)
+    assert len(all_problems) == 2
+
+
+def test_undo_is_an_event_and_cancels_the_latest_verdict(tmp_path):
+    log = EventLog(tmp_path, "erin")
+    log.append("a", "s", "good")
+    log.append("b", "s", "bad", ("blur",))
+    log.append("b", "s", "undo")
+    log.append("a", "s", "bad", ("other",))
+    v = verdicts(log.events)
+    assert set(v) == {"a"} and v["a"].action == "bad"
+    with pytest.raises(UserError):
+        EventLog(tmp_path, "../escape")
+
+
+def two_reviewers(tiny_dataset, labels):
+    a, b = EventLog(labels, "alice"), EventLog(labels, "bob")
+    for log, calls in ((a, [("subj00000000", "good"), ("subj00000001", "bad"), ("subj00000002", "good")]),
+                       (b, [("subj00000000", "good"), ("subj00000001", "good"), ("subj00000002", "bad")])):
+        for s, act in calls:
+            log.append(s, "shard-000000" if s != "subj00000002" else "shard-000001", act,
+                       ("artifacts",) if act == "bad" else ())
+        log.close()
+
+
+def test_two_reviewers_policies_conflicts_and_stats(tiny_dataset, tmp_path, capsys):
+    labels = tmp_path / "labels"
+    two_reviewers(tiny_dataset, labels)
+    m = compile_manifest(tiny_dataset, labels, "any-bad", test_count=1)
+    rows = {r["subject"]: r for r in m["subjects"]}
+    assert rows["subj00000000"]["verdict"] == "accepted"
+    assert rows["subj00000001"]["verdict"] == "rejected" and rows["subj00000001"]["reasons"] == ["artifacts"]
+    assert m["header"]["conflicts"] == ["subj00000001", "subj00000002"]
+    assert m["header"]["counts"]["accepted"] == 1 and m["header"]["counts"]["test"] == 1
+    maj = compile_manifest(tiny_dataset, labels, "majority", test_count=0)
+    assert all(r["verdict"] == "rejected" for r in maj["subjects"] if r["subject"] != "subj00000000")  # ties reject
+    code = label_main(["stats", str(tiny_dataset), "--labels", str(labels), "--json"])
+    st = json.loads(capsys.readouterr().out)
+    assert code == 0 and st["reviewers"]["alice"]["bad"] == 1 and st["reasons"] == {"artifacts": 2}
+    assert st["agreement"][0]["subjects"] == 3 and st["agreement"][0]["agreement"] == pytest.approx(1 / 3, abs=1e-3)
+
+
+def test_compile_is_deterministic_versioned_and_immutable(tiny_dataset, tmp_path, capsys):
+    labels = tmp_path / "labels"
+    two_reviewers(tiny_dataset, labels)
+    out1, out2 = tmp_path / "m" / "demo-v1.json", tmp_path / "m" / "demo-v2.json"
+    assert label_main(["compile", str(tiny_dataset), "--labels", str(labels), "--out", str(out1)]) == 0
+    assert label_main(["compile", str(tiny_dataset), "--labels", str(labels), "--out", str(out2),
+                       "--parent", str(out1)]) == 0
+    m1, m2 = read_manifest(out1), read_manifest(out2)
+    assert m1["subjects"] == m2["subjects"]
+    h1, h2 = m1["header"], m2["header"]
+    assert h1["version"] == "demo-v1" and h2["version"] == "demo-v2" and h2["parent_version"] == "demo-v1"
+    assert {k: v for k, v in h1.items() if k not in ("version", "parent_version", "created")} == \
+           {k: v for k, v in h2.items() if k not in ("version", "parent_version", "created")}
+    assert len(h1["dataset_index_sha256"]) == 64
+    before = out1.read_bytes()
+    capsys.readouterr()
+    assert label_main(["compile", str(tiny_dataset), "--labels", str(labels), "--out", str(out1)]) == 2
+    assert "never edited" in capsys.readouterr().err and out1.read_bytes() == before
+
+
+def test_test_split_is_the_smallest_hashes(tiny_dataset, tmp_path):
+    labels = tmp_path / "labels"
+    labels.mkdir()
+    m = compile_manifest(tiny_dataset, labels, test_count=2)
+    test = sorted(r["subject"] for r in m["subjects"] if r["split"] == "test")
+    expected = sorted(sorted((r["subject"] for r in m["subjects"]), key=subject_hash)[:2])
+    assert test == expected and m["header"]["counts"]["accepted"] == 3  # unreviewed accepted by default
+    strict = compile_manifest(tiny_dataset, labels, unreviewed="reject")
+    assert strict["header"]["counts"]["accepted"] == 0
+
+
+def test_review_cli_off_screen_with_keys(tiny_dataset, tmp_path, capsys):
+    labels, shot = tmp_path / "labels", tmp_path / "shot.png"
+    tar = str(Path(tiny_dataset) / "shard-000000.tar")
+    code = label_main(["review", tar, "--reviewer", "fay", "--labels", str(labels), "--off-screen",
+                       "--keys", "g 4", "--screenshot", str(shot)])
+    assert code == 0 and shot.exists()
+    assert actions(labels, "fay") == [("subj00000000", "good", ()), ("subj00000001", "bad", ("blur",))]
+    assert "2/2 reviewed" in capsys.readouterr().out
+    assert label_main(["review", str(tiny_dataset), "--reviewer", "fay", "--queue", "suspicious",
+                       "--labels", str(labels), "--off-screen"]) == 2 or (Path(tiny_dataset) / "preflags.json").exists()
