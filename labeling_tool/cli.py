@@ -159,7 +159,9 @@ def _stats(args) -> int:
     for k, n in st["reasons"].items():
         print(f"  {k}: {n}")
     print("agreement:")
-    for a in st["agreement"] or [{"reviewers": ["-", "-"], "subjects": 0, "agreement": 0, "cohen_kappa": 0}]:
+    if not st["agreement"]:
+        print("  none measurable: no subject was reviewed by two reviewers")
+    for a in st["agreement"]:
         print(f"  {' vs '.join(a['reviewers'])}: {a['subjects']} shared subjects, agreement {a['agreement']:.2f}, "
               f"Cohen's kappa {a['cohen_kappa']:.2f}")
     return 0

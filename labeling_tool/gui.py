@@ -15,6 +15,7 @@ Mouse (triage): left click toggles a cell's mark. pyvista's and VTK's own keys a
 from __future__ import annotations
 
 import json
+import os
 import threading
 import time
 from dataclasses import dataclass
@@ -31,7 +32,19 @@ from .events import REASONS, EventLog
 REASON_KEYS = {str(i + 1): r for i, r in enumerate(REASONS)}
 CELL = 1.06  # grid pitch in world units (planes are 1 x 1)
 TRIAGE_ROWS, TRIAGE_COLS = 5, 8
-HELP = __doc__[__doc__.index("Keys (review)"):]
+HELP = "\n".join([
+    "REVIEW                               TRIAGE",
+    "g        good                        arrows   move the cursor",
+    "1 .. 5   bad: 1 multiple faces,      1 .. 5   mark bad (reason)",
+    "         2 broken back, 3 artifacts, g/space  unmark",
+    "         4 blur, 5 other             click    toggle a mark",
+    "s        skip                        Return   commit page (marked bad, rest good)",
+    "Right/n  next     Left/p  previous   c        cycle the shown view",
+    "u        next unreviewed             t        back to review",
+    "z        undo (an event too)",
+    "v        3D point cloud              h        this help",
+    "t        triage                      Escape   quit (every verdict is already saved)",
+])
 
 
 @dataclass
@@ -140,6 +153,9 @@ class ReviewApp:
         self.triage_page, self.triage_cursor, self.triage_marks = 0, 0, {}
         self.timings: dict[str, list[float]] = {"open": [], "next": []}
         t0 = time.perf_counter()
+        if off_screen and not os.environ.get("DISPLAY"):
+            # Render with EGL directly instead of first trying (and warning about) a missing X server.
+            os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
         self.plotter = pv.Plotter(off_screen=off_screen, window_size=list(window_size),
                                   title=f"label-tool review: {reviewer}")
         self.plotter.set_background("#202020")
@@ -339,7 +355,8 @@ class ReviewApp:
         pl = self.plotter
         pl.add_text(self.hud_text(), position="upper_left", font_size=10, color="white", name="hud", render=False)
         if self.show_help:
-            pl.add_text(HELP, position="lower_left", font_size=11, color="yellow", name="help", render=False)
+            pl.add_text(HELP, position="lower_left", font_size=10, color="yellow", name="help", font="courier", shadow=True,
+                        render=False)
         else:
             pl.remove_actor("help", render=False)
         pl.render()
