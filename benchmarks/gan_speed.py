@@ -1,0 +1,587 @@
+"""Speed of the 3D-GAN generators (EG3D, PanoHead, SphereHead) on their tiny fixture checkpoints.
+
+Writes ``benchmarks/reports/gan_speed.{json,md}`` (``gan_speed_quick.*`` with ``--quick``) and a
+PNG plot beside them (the plot needs matplotlib; without it it is skipped with a note). The
+markdown is regenerated from the JSON.
+
+    python benchmarks/gan_speed.py                # default mode, about 4 minutes on 2 idle cores
+    python benchmarks/gan_speed.py --quick        # a smoke run (8 views per subject), about 1 minute
+    python benchmarks/gan_speed.py --report-only  # rewrite the markdown and plot from the JSON
+
+The checkpoints are the tiny random-init generators of the shared fixtures
+(``$PANOLAM_SHARED/fixtures/gan/<model>/<model>-tiny.pkl``, default ``../shared`` beside the
+repository): neural rendering resolution 32, 12+12 samples per ray, super-resolution to 128 px,
+backbone planes 256 px (EG3D) / 64 px (PanoHead, SphereHead). A model whose file is missing is
+skipped with a note. Sections: (1) throughput of 32-view 128 px subjects, split into per-subject
+work (mapping + backbone + background) and per-view rendering; (2) amortization: the backbone
+computed once for 32 views against once per view, measured side by side with the arms rotated
+over repeats; (3) samples per ray against error, against a 4x-samples reference. Times are
+``time.perf_counter`` wall seconds after a warm-up; tables give medians.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import statistics
+import sys
+import time
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from datagen.cameras import sample_views
+from datagen.generators import GANS, make_generator
+from datagen.generators.base import STREAM_CAMERAS, subject_rng
+from datagen.pipeline import software_info
+
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
+SHARED = Path(os.environ.get("PANOLAM_SHARED", REPO.parent / "shared"))
+SEED = 0
+RESOLUTION = 128
+PROTOCOL = "360"
+REFERENCE_SAMPLES = (48, 48)    # 4x the fixtures' default (12, 12)
+PSNR_TARGET_DB = 40.0           # image PSNR at which the sampling error counts as negligible
+WARMUP_INDEX = 10_000           # a subject outside every measured set
+SWEEP_FIRST_INDEX = 100         # sweep subjects, apart from the throughput subjects
+ARMS = ("batched", "per_view", "regenerate")
+# Paired ratios: the whole saving, the part due to reusing the backbone, the part due to batching views.
+RATIOS = {"regenerate_over_batched": ("regenerate", "batched"), "reuse": ("regenerate", "per_view"),
+          "batching": ("per_view", "batched")}
+ARM_TITLES = {"batched": "backbone once, all views in one render call",
+              "per_view": "backbone once, one view per render call",
+              "regenerate": "backbone again for every view, one view per call"}
+
+
+@dataclass(frozen=True)
+class Plan:
+    """Sizes of one mode."""
+
+    views: int                # views per subject in the throughput/amortization section
+    subjects: int             # throughput/amortization subjects = repeats of the three arms
+    sweep_subjects: int
+    sweep_views: int
+    sweep_repeats: int
+    sample_settings: tuple
+
+
+FULL = Plan(views=32, subjects=4, sweep_subjects=2, sweep_views=8, sweep_repeats=2,
+            sample_settings=((4, 4), (6, 6), (8, 8), (12, 12), (16, 16), (24, 24)))
+QUICK = Plan(views=8, subjects=3, sweep_subjects=1, sweep_views=4, sweep_repeats=1,
+             sample_settings=((4, 4), (8, 8), (12, 12), (24, 24)))
+
+
+# ------------------------------------------------------------------------------------------------
+# Generators, views, timing
+
+def checkpoint_samples(g) -> tuple:
+    """The checkpoint's own (coarse, importance) samples per ray."""
+    rk = g.G.rendering_kwargs
+    return rk["depth_resolution"], rk["depth_resolution_importance"]
+
+
+def checkpoint_path(model: str) -> Path:
+    return SHARED / "fixtures" / "gan" / model / f"{model}-tiny.pkl"
+
+
+def load_generators() -> tuple[dict, list[str]]:
+    """The deterministic generators whose checkpoints exist, and a note for each one skipped."""
+    generators, notes = {}, []
+    for model in GANS:
+        path = checkpoint_path(model)
+        if path.exists():
+            generators[model] = make_generator(model, str(path), {"deterministic": True})
+        else:
+            notes.append(f"{model} skipped: {path} not found (set PANOLAM_SHARED to the shared/ folder)")
+            print(notes[-1])
+    return generators, notes
+
+
+def views_of(index: int, n_views: int):
+    return sample_views(PROTOCOL, subject_rng(SEED, index, STREAM_CAMERAS), n_views)
+
+
+def timed(fn, *args):
+    """(fn(*args), wall seconds)."""
+    start = time.perf_counter()
+    out = fn(*args)
+    return out, time.perf_counter() - start
+
+
+def median(values) -> float:
+    return float(statistics.median(values))
+
+
+def warm_up(generators: dict) -> None:
+    for g in generators.values():
+        g.render(g.sample_subject(SEED, WARMUP_INDEX), views_of(WARMUP_INDEX, 8), RESOLUTION)
+
+
+@contextmanager
+def samples_per_ray(g, samples: tuple):
+    """Render with ``samples`` = (coarse, importance) per ray while the block runs."""
+    rk = g.G.rendering_kwargs
+    saved = rk["depth_resolution"], rk["depth_resolution_importance"]
+    rk["depth_resolution"], rk["depth_resolution_importance"] = samples
+    try:
+        yield
+    finally:
+        rk["depth_resolution"], rk["depth_resolution_importance"] = saved
+
+
+# ------------------------------------------------------------------------------------------------
+# 1 + 2. Throughput and amortization: three ways to render the views of a subject
+
+def run_batched(g, index: int, views) -> tuple[np.ndarray, dict]:
+    subject, subject_s = timed(g.sample_subject, SEED, index)
+    out, render_s = timed(g.render, subject, views, RESOLUTION)
+    return out.rgb, {"subject_s": subject_s, "render_s": render_s, "total_s": subject_s + render_s}
+
+
+def run_per_view(g, index: int, views) -> tuple[np.ndarray, dict]:
+    subject, subject_s = timed(g.sample_subject, SEED, index)
+    rgbs, render_s = [], 0.0
+    for k in range(len(views)):
+        out, seconds = timed(g.render, subject, views.subset([k]), RESOLUTION)
+        rgbs.append(out.rgb)
+        render_s += seconds
+    return np.concatenate(rgbs), {"subject_s": subject_s, "render_s": render_s, "total_s": subject_s + render_s}
+
+
+def run_regenerate(g, index: int, views) -> tuple[np.ndarray, dict]:
+    """As per-image sampling scripts do: mapping + backbone again before every view."""
+    rgbs, subject_s, render_s = [], 0.0, 0.0
+    for k in range(len(views)):
+        subject, s1 = timed(g.sample_subject, SEED, index)
+        out, s2 = timed(g.render, subject, views.subset([k]), RESOLUTION)
+        rgbs.append(out.rgb)
+        subject_s, render_s = subject_s + s1, render_s + s2
+    return np.concatenate(rgbs), {"subject_s": subject_s, "render_s": render_s, "total_s": subject_s + render_s}
+
+
+RUNNERS = {"batched": run_batched, "per_view": run_per_view, "regenerate": run_regenerate}
+
+
+def throughput_model(g, plan: Plan) -> dict:
+    """One subject per repeat; the order of the arms rotates so that drift hits every arm alike."""
+    rows, max_diff = [], 0.0
+    for index in range(plan.subjects):
+        views = views_of(index, plan.views)
+        order = ARMS[index % len(ARMS):] + ARMS[:index % len(ARMS)]
+        row, images = {"index": index, "order": list(order)}, {}
+        for arm in order:
+            images[arm], row[arm] = RUNNERS[arm](g, index, views)
+        max_diff = max(max_diff, *(float(np.abs(images[a] - images["batched"]).max()) for a in ARMS[1:]))
+        rows.append(row)
+    med = {arm: {k: median(r[arm][k] for r in rows) for k in ("subject_s", "render_s", "total_s")} for arm in ARMS}
+    return {"rows": rows, "median": med, "images_per_s": plan.views / med["batched"]["total_s"],
+            "ratios": {name: paired_ratio(rows, a, b) for name, (a, b) in RATIOS.items()},
+            "max_abs_rgb_diff_between_arms": max_diff}
+
+
+def paired_ratio(rows: list[dict], numerator: str, denominator: str) -> dict:
+    """Median, min and max over subjects of the ratio of two arms run back to back on the same subject."""
+    ratios = [r[numerator]["total_s"] / r[denominator]["total_s"] for r in rows]
+    return {"median": median(ratios), "min": min(ratios), "max": max(ratios)}
+
+
+def throughput(generators: dict, plan: Plan) -> dict:
+    return {model: throughput_model(g, plan) for model, g in generators.items()}
+
+
+# ------------------------------------------------------------------------------------------------
+# 3. Samples per ray against error
+
+def psnr(mse: float):
+    """PSNR in dB of images in [0, 1]; None when identical."""
+    return 10.0 * math.log10(1.0 / mse) if mse > 0 else None
+
+
+def errors(out, ref) -> dict:
+    """Per-view squared errors of the image and the mask against the reference."""
+    rgb = ((out.rgb.astype(np.float64) - ref.rgb) ** 2).mean(axis=(1, 2, 3))
+    alpha = ((out.alpha.astype(np.float64) - ref.alpha) ** 2).mean(axis=(1, 2))
+    return {"rgb_mse": rgb.tolist(), "alpha_mse": alpha.tolist()}
+
+
+def error_summary(per_subject: list[dict]) -> dict:
+    rgb = [m for e in per_subject for m in e["rgb_mse"]]
+    alpha = [m for e in per_subject for m in e["alpha_mse"]]
+    return {"psnr_rgb_db": psnr(float(np.mean(rgb))), "worst_view_psnr_rgb_db": psnr(max(rgb)),
+            "psnr_alpha_db": psnr(float(np.mean(alpha)))}
+
+
+def sweep_model(g, plan: Plan) -> dict:
+    indices = range(SWEEP_FIRST_INDEX, SWEEP_FIRST_INDEX + plan.sweep_subjects)
+    subjects = {i: g.sample_subject(SEED, i) for i in indices}  # the planes do not depend on the samples
+    views = {i: views_of(i, plan.sweep_views) for i in indices}
+    with samples_per_ray(g, REFERENCE_SAMPLES):
+        reference = {i: g.render(subjects[i], views[i], RESOLUTION) for i in indices}
+    # The reference is timed among the settings, and must come out identical to its first render.
+    settings = tuple(sorted(set(plan.sample_settings) | {checkpoint_samples(g), REFERENCE_SAMPLES}))
+    seconds = {s: [] for s in settings}
+    errs = {}
+    for repeat in range(plan.sweep_repeats):
+        for samples in settings[repeat % len(settings):] + settings[:repeat % len(settings)]:
+            with samples_per_ray(g, samples):
+                for i in indices:
+                    out, s = timed(g.render, subjects[i], views[i], RESOLUTION)
+                    seconds[samples].append(s / plan.sweep_views)
+                    errs.setdefault(samples, {})[i] = errors(out, reference[i])  # deterministic: same each repeat
+    rows = [{"samples": list(s), "reference": s == REFERENCE_SAMPLES, "ms_per_view": 1e3 * median(seconds[s]),
+             **error_summary([errs[s][i] for i in indices])} for s in settings]
+    return {"rows": rows, "default_samples": list(checkpoint_samples(g))}
+
+
+def sweep(generators: dict, plan: Plan) -> dict:
+    return {model: sweep_model(g, plan) for model, g in generators.items()}
+
+
+# ------------------------------------------------------------------------------------------------
+# Running
+
+SECTIONS = (("throughput", "1+2. throughput and amortization", throughput),
+            ("samples", "3. samples per ray", sweep))
+
+
+def load_average():
+    """1-minute load average (None where the platform has none)."""
+    return os.getloadavg()[0] if hasattr(os, "getloadavg") else None
+
+
+def machine_info() -> dict:
+    cpu_model = platform.processor() or "unknown"
+    if Path("/proc/cpuinfo").exists():
+        models = [line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                  if line.startswith("model name")]
+        cpu_model = models[0] if models else cpu_model
+    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return {"cpu_model": cpu_model, "cpu_count": os.cpu_count(), "usable_cpus": usable,
+            "platform": platform.platform(), "python": platform.python_version(), "numpy": np.__version__,
+            "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
+            "git_revision": software_info()["git_revision"]}
+
+
+def fixture_info(generators: dict) -> dict:
+    """The configuration of each measured checkpoint, read from the loaded generator."""
+    info = {}
+    for model, g in generators.items():
+        info[model] = {"checkpoint": str(checkpoint_path(model)), "sha256": g.checkpoint.sha256,
+                       "neural_rendering_resolution": g.checkpoint.neural_rendering_resolution,
+                       "image_resolution": g.G.img_resolution,
+                       "samples": list(checkpoint_samples(g)),
+                       "plane_resolution": 256 if model == "eg3d" else g.G.rendering_kwargs["triplane_size"]}
+    return info
+
+
+def measure(plan: Plan, mode: str, command: str) -> dict:
+    generators, notes = load_generators()
+    if not generators:
+        sys.exit("no GAN fixture checkpoint found; nothing to measure")
+    results = {"mode": mode, "command": command, "date_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+               "machine": machine_info(), "load_average": {"before": load_average()}, "plan": asdict(plan),
+               "fixtures": fixture_info(generators), "notes": notes}
+    start = time.perf_counter()
+    warm_up(generators)
+    for key, title, fn in SECTIONS:
+        t0 = time.perf_counter()
+        print(f"[{time.perf_counter() - start:6.0f} s] {title} ...", flush=True)
+        results[key] = fn(generators, plan)
+        results["load_average"][key] = load_average()
+        print(f"           done in {time.perf_counter() - t0:.0f} s", flush=True)
+    results["benchmark_seconds"] = time.perf_counter() - start
+    return results
+
+
+# ------------------------------------------------------------------------------------------------
+# Conclusions, computed from the JSON
+
+def _samples(row) -> str:
+    return f"({row['samples'][0]}+{row['samples'][1]})"
+
+
+def _db(value) -> float:
+    return math.inf if value is None else value
+
+
+def default_row(sweep_result: dict) -> dict:
+    """The row of the checkpoint's own samples per ray."""
+    return next(r for r in sweep_result["rows"] if r["samples"] == sweep_result["default_samples"])
+
+
+def throughput_conclusions(results: dict) -> list[str]:
+    data = results["throughput"]
+    rate = {m: d["images_per_s"] for m, d in data.items()}
+    fast, slow = max(rate, key=rate.get), min(rate, key=rate.get)
+    share = {m: d["median"]["batched"]["subject_s"] / d["median"]["batched"]["total_s"] for m, d in data.items()}
+    lines = [", ".join(f"{m} {rate[m]:.1f}" for m in data) +
+             f" images/s ({results['plan']['views']} views at {RESOLUTION} px, "
+             f"{results['machine']['torch_threads']} torch threads)."]
+    if fast != slow:
+        lines[-1] += f" {fast} is x{rate[fast] / rate[slow]:.2f} the speed of {slow}."
+    verdict = ("rendering (ray marching + super-resolution) dominates" if max(share.values()) < 0.5
+               else "the per-subject work is a large part")
+    lines.append("The per-subject work (mapping + backbone + background) takes " +
+                 ", ".join(f"{100 * share[m]:.1f} % ({m})" for m in data) +
+                 f" of the time for {results['plan']['views']} views: {verdict}.")
+    return lines
+
+
+def amortization_conclusions(results: dict) -> list[str]:
+    lines = []
+    for model, d in results["throughput"].items():
+        med, ratio = d["median"], {k: v["median"] for k, v in d["ratios"].items()}
+        total = d["ratios"]["regenerate_over_batched"]
+        lines.append(f"{model}: regenerating the backbone for every view takes x{total['median']:.2f} the time of "
+                     f"computing it once and rendering the {results['plan']['views']} views in one call "
+                     f"(x{total['min']:.2f} to x{total['max']:.2f} over subjects; medians "
+                     f"{med['regenerate']['total_s']:.2f} s vs {med['batched']['total_s']:.2f} s). Reusing the "
+                     f"backbone alone is worth x{ratio['reuse']:.2f} (both one view per call); "
+                     + (f"batching the views in one call saves x{ratio['batching']:.2f}." if ratio["batching"] >= 1
+                        else f"batching the views in one call is SLOWER than one view per call: one-view calls take "
+                             f"x{ratio['batching']:.2f} its time."))
+    diff = max(d["max_abs_rgb_diff_between_arms"] for d in results["throughput"].values())
+    same = "the same images" if diff < 1e-4 else "DIFFERENT images"
+    lines.append(f"The three ways give {same} (max |rgb difference| {diff:.1e} over all subjects and models).")
+    return lines
+
+
+def sample_conclusions(results: dict) -> list[str]:
+    lines = []
+    for model, d in results["samples"].items():
+        rows = [r for r in d["rows"] if not r["reference"]]
+        reference = next(r for r in d["rows"] if r["reference"])
+        default = default_row(d)
+        enough = next((r for r in rows if _db(r["psnr_rgb_db"]) >= PSNR_TARGET_DB), None)
+        fewest, most = rows[0], rows[-1]
+        text = (f"{model}: the checkpoint default {_samples(default)} is at {default['psnr_rgb_db']:.1f} dB image / "
+                f"{default['psnr_alpha_db']:.1f} dB mask PSNR against {REFERENCE_SAMPLES[0]}+{REFERENCE_SAMPLES[1]}, "
+                f"{default['ms_per_view']:.0f} ms per view; ")
+        if enough is None:
+            text += f"no setting reaches {PSNR_TARGET_DB:.0f} dB. "
+        else:
+            text += (f"the fewest samples reaching {PSNR_TARGET_DB:.0f} dB are {_samples(enough)} "
+                     f"({enough['psnr_rgb_db']:.1f} dB, x{enough['ms_per_view'] / default['ms_per_view']:.2f} the "
+                     "default's time). ")
+        text += (f"From {_samples(fewest)} to the reference {_samples(reference)} the samples grow "
+                 f"x{sum(reference['samples']) / sum(fewest['samples']):.0f} and the time per view "
+                 f"x{reference['ms_per_view'] / fewest['ms_per_view']:.1f}.")
+        lines.append(text)
+    return lines
+
+
+# ------------------------------------------------------------------------------------------------
+# Markdown
+
+def fmt(value, digits=2) -> str:
+    return "identical" if value is None else f"{value:.{digits}f}"
+
+
+def table(headers: list[str], rows: list[list]) -> list[str]:
+    lines = ["| " + " | ".join(headers) + " |", "|" + "|".join("---" for _ in headers) + "|"]
+    return lines + ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+
+
+def bullets(lines: list[str]) -> list[str]:
+    return [f"- {line}" for line in lines]
+
+
+def load_note(results: dict) -> str:
+    """The 1-minute load average around the run, and whether other work competed for the CPUs."""
+    load = results["load_average"]
+    if load["before"] is None:
+        return "Load average: not available on this platform."
+    cpus = results["machine"]["usable_cpus"]
+    during = {k: v for k, v in load.items() if k != "before"}
+    busy = load["before"] > 0.5 * cpus or max(during.values()) > cpus + 1.0
+    return (f"1-minute load average {load['before']:.2f} before the run and "
+            + ", ".join(f"{v:.2f} after {k}" for k, v in during.items())
+            + f" (this run alone keeps about {results['machine']['torch_threads']} busy): "
+            + ("**other work competed for the CPUs**: absolute times are inflated and noisy; the ratios, measured "
+               "side by side with the arms interleaved, are the numbers to trust." if busy
+               else "the machine was otherwise idle."))
+
+
+def scope_section(results: dict) -> list[str]:
+    rows = [[m, f["neural_rendering_resolution"], f"{f['samples'][0]}+{f['samples'][1]}", f["image_resolution"],
+             f["plane_resolution"], f["sha256"][:12]] for m, f in results["fixtures"].items()]
+    return (["**These are tiny random-init configurations**, the shared test fixtures, not the released models. "
+             "The released checkpoints render many more rays per view (e.g. 128x128 instead of 32x32) with more "
+             "samples per ray and super-resolve to 512 px, so their per-view cost is far higher and the per-subject "
+             "share smaller still; full-size timings need a GPU and the official checkpoints, neither available "
+             "here.", ""] +
+            table(["model", "neural render px", "samples/ray", "output px", "plane px", "sha256"], rows) +
+            [""] + [f"Note: {n}" for n in results["notes"]])
+
+
+def machine_section(results: dict) -> list[str]:
+    m = results["machine"]
+    return [
+        f"Measured {results['date_utc']} in {results['mode']} mode ({results['benchmark_seconds'] / 60:.1f} min) on "
+        f"{m['cpu_model']}: {m['cpu_count']} CPUs ({m['usable_cpus']} usable), torch {m['torch']} (CPU) with "
+        f"{m['torch_threads']} threads, Python {m['python']}, numpy {m['numpy']}, {m['platform']}, "
+        f"git {m['git_revision']}.",
+        "",
+        load_note(results),
+        "",
+        "Reproduce from the repository root:",
+        "",
+        "```bash",
+        results["command"],
+        "```",
+        "",
+        "Wall time by `time.perf_counter` after one warm-up subject per model; generators built with "
+        "`deterministic=True` (no stratified jitter).",
+    ]
+
+
+def throughput_section(results: dict) -> list[str]:
+    rows = []
+    views = results["plan"]["views"]
+    for model, d in results["throughput"].items():
+        med = d["median"]["batched"]
+        rows.append([model, fmt(med["subject_s"], 3), fmt(med["render_s"]), fmt(1e3 * med["render_s"] / views, 0),
+                     fmt(med["total_s"]), fmt(d["images_per_s"], 1),
+                     f"{100 * med['subject_s'] / med['total_s']:.1f} %"])
+    n = results["plan"]["subjects"]
+    return ([f"{views} views (`360` protocol) at {RESOLUTION} px per subject, backbone once and all views in one "
+             f"`render` call; medians over {n} subjects.", ""] +
+            table(["model", "per-subject s", "render s", "render ms/view", "total s", "images/s", "per-subject share"],
+                  rows))
+
+
+def amortization_section(results: dict) -> list[str]:
+    rows = []
+    for model, d in results["throughput"].items():
+        med, ratios = d["median"], d["ratios"]
+        total = ratios["regenerate_over_batched"]
+        rows.append([model, *(fmt(med[a]["total_s"]) for a in ARMS), fmt(med["regenerate"]["subject_s"]),
+                     f"x{total['median']:.2f} (x{total['min']:.2f} - x{total['max']:.2f})",
+                     f"x{ratios['reuse']['median']:.2f}", f"x{ratios['batching']['median']:.2f}"])
+    n = results["plan"]["subjects"]
+    arms = "; ".join(f"**{a}**: {ARM_TITLES[a]}" for a in ARMS)
+    return ([f"Seconds for the {results['plan']['views']} views of one subject. {arms}. The three arms run back to "
+             f"back on the same subject, their order rotating from subject to subject. Times are medians over {n} "
+             "subjects; ratios are medians (min - max) of the per-subject ratios, each taken between arms that ran "
+             "seconds apart, so they are robust to load that drifts between subjects.", ""] +
+            table(["model", "batched s", "per_view s", "regenerate s", "of which backbone s",
+                   "regenerate / batched (min - max)", "regenerate / per_view (reuse)",
+                   "per_view / batched (batching)"], rows))
+
+
+def samples_section(results: dict) -> list[str]:
+    plan = results["plan"]
+    lines = [f"{plan['sweep_subjects']} subject(s) x {plan['sweep_views']} views at {RESOLUTION} px, deterministic. "
+             f"PSNR of the final image (in [0, 1]) and of the alpha mask (the renderer's weight sum, upsampled to "
+             f"{RESOLUTION} px as stored) against the {REFERENCE_SAMPLES[0]}+{REFERENCE_SAMPLES[1]} reference on "
+             f"the same planes and cameras; PSNR from the mean squared error over all views. Time per view: median "
+             f"over {plan['sweep_repeats']} repeat(s) x subjects of a {plan['sweep_views']}-view render call divided "
+             "by the views, the settings (reference included) interleaved in rotating order. The reference row "
+             "re-renders the reference and must read 'identical'.", ""]
+    rows = []
+    for model, d in results["samples"].items():
+        default = default_row(d)
+        default_ms = default["ms_per_view"]
+        for r in d["rows"]:
+            label = _samples(r) + (" reference" if r["reference"] else " default" if r is default else "")
+            rows.append([model, label, fmt(r["ms_per_view"], 1), f"x{r['ms_per_view'] / default_ms:.2f}",
+                         fmt(r["psnr_rgb_db"], 1), fmt(r["worst_view_psnr_rgb_db"], 1), fmt(r["psnr_alpha_db"], 1)])
+    lines += table(["model", "samples (coarse+importance)", "ms/view", "time vs default", "image PSNR dB",
+                    "worst view dB", "mask PSNR dB"], rows)
+    return lines + ["", "Caveat: random-weight generators produce a dense, smooth volume with no trained surface "
+                    "(most rays are largely opaque), so these curves characterize the renderer on these fixtures, not "
+                    "the sampling a trained head with thin, sharp surfaces needs."]
+
+
+def markdown(results: dict, plot: str | None) -> str:
+    summary = throughput_conclusions(results) + amortization_conclusions(results) + sample_conclusions(results)
+    parts = [["# 3D-GAN generators (EG3D, PanoHead, SphereHead): speed on the tiny fixtures", "",
+              f"Generated by `benchmarks/gan_speed.py` from `{results_name(results)}.json`; do not edit.", ""],
+             scope_section(results), [""], machine_section(results), ["", "## Conclusions", ""], bullets(summary),
+             ["", f"## 1. Throughput: {results['plan']['views']}-view {RESOLUTION} px subjects", ""],
+             throughput_section(results),
+             ["", "## 2. Amortization: backbone once per subject vs once per view", ""], amortization_section(results),
+             ["", "## 3. Samples per ray: render time against error", ""], samples_section(results)]
+    if plot:
+        parts.append(["", "## Plot", "", f"![{plot}]({plot})"])
+    else:
+        parts.append(["", "The plot was skipped: matplotlib is not installed."])
+    return "\n".join(line for part in parts for line in part) + "\n"
+
+
+def results_name(results: dict) -> str:
+    return "gan_speed_quick" if results["mode"] == "quick" else "gan_speed"
+
+
+# ------------------------------------------------------------------------------------------------
+# Plot
+
+def write_plot(results: dict, out_dir: Path) -> str | None:
+    """PSNR against time per view, per model; returns the file name (None without matplotlib)."""
+    try:
+        import matplotlib
+    except ImportError:
+        print("matplotlib is not installed: skipping the plot (pip install matplotlib)")
+        return None
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    name = f"{results_name(results)}_psnr_vs_time.png"
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
+    for ax, key, label in zip(axes, ("psnr_rgb_db", "psnr_alpha_db"), ("image", "alpha mask")):
+        plot_psnr_vs_time(results, ax, key)
+        ax.set_ylabel(f"{label} PSNR vs {REFERENCE_SAMPLES[0]}+{REFERENCE_SAMPLES[1]} (dB)")
+        ax.grid(alpha=0.3)
+    fig.suptitle(f"Samples per ray (coarse+importance), {RESOLUTION} px, tiny fixtures")
+    fig.tight_layout()
+    fig.savefig(out_dir / name, dpi=110)
+    plt.close(fig)
+    return name
+
+
+def plot_psnr_vs_time(results: dict, ax, key: str) -> None:
+    for model, d in results["samples"].items():
+        rows = [r for r in d["rows"] if r[key] is not None]
+        ax.plot([r["ms_per_view"] for r in rows], [r[key] for r in rows], "o-", label=model)
+        for r in rows:
+            ax.annotate(_samples(r), (r["ms_per_view"], r[key]), textcoords="offset points", xytext=(4, -10),
+                        fontsize=7)
+    ax.axhline(PSNR_TARGET_DB, color="grey", linestyle=":", label=f"{PSNR_TARGET_DB:.0f} dB")
+    ax.set_xlabel("render ms per view")
+    ax.legend(fontsize=8)
+
+
+# ------------------------------------------------------------------------------------------------
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="fewer subjects and settings (under 3 minutes)")
+    parser.add_argument("--report-only", action="store_true",
+                        help="measure nothing: rewrite the markdown and plot from the existing JSON")
+    parser.add_argument("--out-dir", type=Path, default=HERE / "reports", help="where the report goes")
+    args = parser.parse_args(argv)
+    mode = "quick" if args.quick else "default"
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    json_path = args.out_dir / f"{results_name({'mode': mode})}.json"
+    if args.report_only:
+        results = json.loads(json_path.read_text())
+    else:
+        script = Path(__file__).resolve()
+        shown = script.relative_to(REPO) if script.is_relative_to(REPO) else script
+        command = " ".join(["python", str(shown), *(argv if argv is not None else sys.argv[1:])])
+        results = measure(QUICK if args.quick else FULL, mode, command)
+        json_path.write_text(json.dumps(results, indent=1) + "\n")
+    md_path = json_path.with_suffix(".md")
+    md_path.write_text(markdown(results, write_plot(results, args.out_dir)))
+    print(f"wrote {json_path}, {md_path}")
+
+
+if __name__ == "__main__":
+    main()
