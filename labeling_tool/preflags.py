@@ -448,8 +448,8 @@ def _janus(front, back, s: float):
     fg, bg = fc.mean(-1), bc.mean(-1)
     sim = max(_edge_ncc(bg, bm, fg, fm, s), _edge_ncc(bg, bm, fg[:, ::-1], fm[:, ::-1], s))
     it2 = max(1, int(round(2 * s)))
-    face = _central(ndi.binary_erosion(fm, iterations=it2), 0.25, 0.75, 0.3, 0.85) if fm.any() else fm
-    face &= ndi.binary_erosion(bm, iterations=it2)
+    face = (_central(ndi.binary_erosion(fm, iterations=it2), 0.25, 0.75, 0.3, 0.85)
+            & ndi.binary_erosion(bm, iterations=it2))
     colour = max(_colour_ncc(bc, fc, face, s), _colour_ncc(bc, fc[:, ::-1], face[:, ::-1], s)) if face.any() else -1.0
     it = max(1, int(round(3 * s)))
     f_inner = ndi.binary_erosion(fm, iterations=it)
@@ -619,7 +619,8 @@ def _extract(item):
     except DatasetError as e:
         return shard, _failed_record(key, str(e))
     except Exception as e:  # a detector crashing on odd input must not stop the whole dataset
-        return shard, _failed_record(key, f"{where}: subject {key}: feature extraction failed ({type(e).__name__}: {e})")
+        return shard, _failed_record(key, f"{where}: subject {key}: feature extraction failed "
+                                          f"({type(e).__name__}: {e})")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -850,7 +851,8 @@ def score_record(r: dict, st: dict, dup, keys: list, p: Params = DEFAULT_PARAMS)
         out["empty"] = {"score": 0.5 + 0.5 * len(empty) / len(area), "value": len(empty),
                         "why": f"{len(empty)} of {len(area)} views empty ({names})"}
     else:
-        out["empty"] = {"score": 0.0, "why": f"no empty views (smallest mask {100 * float(area.min()):.1f}% of the image)"
+        out["empty"] = {"score": 0.0,
+                        "why": f"no empty views (smallest mask {100 * float(area.min()):.1f}% of the image)"
                         if len(area) else "no views"}
 
     # implausible
@@ -861,7 +863,8 @@ def score_record(r: dict, st: dict, dup, keys: list, p: Params = DEFAULT_PARAMS)
                                 f"{100 * math.exp(st['log_area'][0]):.1f}%, z {za:+.1f})"))
     if np.isfinite(r["depth_median"]):
         zd = _z(r["depth_median"], st["depth_median"])
-        parts.append((abs(zd), f"median depth {r['depth_median']:.3f} (median {st['depth_median'][0]:.3f}, z {zd:+.1f})"))
+        parts.append((abs(zd), f"median depth {r['depth_median']:.3f} (median {st['depth_median'][0]:.3f}, "
+                               f"z {zd:+.1f})"))
     if parts:
         zmax, why = max(parts)
         out["implausible"] = {"score": _ramp(zmax, p.implausible_z, p.implausible_z_sat), "value": zmax, "why": why}

@@ -1,0 +1,437 @@
+"""Speed and memory of the pure-PyTorch Gaussian rasterizer (``panolam.rasterizer``) on a CPU.
+
+Writes ``benchmarks/reports/rasterizer_speed.{json,md}`` (``rasterizer_speed_quick.*`` with
+``--quick``) and, when matplotlib is importable, a PNG plot beside them (otherwise the markdown
+says it was skipped).
+
+    python benchmarks/rasterizer_speed.py            # full run, a few minutes on 2 cores
+    python benchmarks/rasterizer_speed.py --quick    # smoke run, under 2 minutes
+    python benchmarks/rasterizer_speed.py --report-only [--quick]   # rewrite markdown and plot from the JSON
+
+Scenes look like a head avatar: Gaussians on a noisy ellipsoid (semi-axes 0.20, 0.25, 0.22) around
+the origin, scales log-uniform in [0.003, 0.01], random rotations, opacities uniform in [0.2, 1],
+seen from 2.7 units (yaw 20, pitch 10 degrees) with EG3D's 18.837 degree FOV. Each configuration
+runs in a fresh subprocess: a warm-up forward+backward, then ``repeats`` timed forward passes
+(``rasterize``) and backward passes (``loss.backward()`` of a sum over all outputs), wall clock
+``time.perf_counter``, medians reported. Peak memory is the peak resident set size
+(``getrusage(RUSAGE_SELF).ru_maxrss``) at the end minus the resident size just before the first
+render, so it counts everything rendering added (tensors, allocator caches, autograd state); a
+fresh process per configuration keeps earlier configurations out of the peak. The baseline
+"dense tiles" is the straightforward approach: 16 px tiles, a Python loop over tiles, dense
+(pixels x Gaussians) tensors per tile and autograd through everything.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+import torch
+
+from datagen.cameras import camera_position, fov_to_focal, intrinsics, look_at, pixel_intrinsics
+from panolam.rasterizer import ALPHA_MAX, ALPHA_MIN, BLOCK, T_MIN, bin_gaussians, project, rasterize, tile_ranges
+
+HERE = Path(__file__).resolve().parent
+REPORTS = HERE / "reports"
+NAME = "rasterizer_speed"
+GOAL_SECONDS = 0.5           # the issue's goal: forward + backward, 20K Gaussians, 256 x 256
+GOAL_CONFIG = (20_000, 256)
+# Every configuration of the rasterizer runs once per round (rounds interleave, so a burst of load
+# from other processes spreads over all rows); medians are over all rounds' repeats.
+FULL = {"counts": (5_000, 10_000, 20_000, 50_000, 100_000), "resolutions": (128, 256, 512), "rounds": 3,
+        "repeats": 5, "repeats_large": 2, "dense_counts": (5_000, 20_000), "dense_repeats": 2}
+QUICK = {"counts": (5_000, 20_000), "resolutions": (128, 256), "rounds": 1, "repeats": 3, "repeats_large": 2,
+         "dense_counts": (), "dense_repeats": 1}
+
+
+# ------------------------------------------------------------------------------------------------
+# Scene and the dense baseline
+
+
+def head_scene(n: int, seed: int = 0) -> dict:
+    """n head-avatar-like Gaussians (see the module docstring), float32."""
+    g = torch.Generator().manual_seed(seed)
+    direction = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    means = direction * torch.tensor([0.20, 0.25, 0.22]) * (1 + 0.03 * torch.randn(n, 1, generator=g))
+    log_scale = math.log(0.003) + (math.log(0.01) - math.log(0.003)) * torch.rand(n, 3, generator=g)
+    return dict(means=means, quats=torch.nn.functional.normalize(torch.randn(n, 4, generator=g), dim=-1),
+                scales=log_scale.exp(), opacities=0.2 + 0.8 * torch.rand(n, generator=g),
+                colors=torch.rand(n, 3, generator=g))
+
+
+def head_camera(resolution: int):
+    """(world-to-camera 4x4, pixel K), float32."""
+    c2w = torch.from_numpy(look_at(camera_position(20.0, 10.0, 2.7)))
+    K = pixel_intrinsics(torch.from_numpy(intrinsics(fov_to_focal(18.837))), resolution, resolution)
+    return torch.linalg.inv(c2w).float(), K.float()
+
+
+def dense_tiles_rasterize(means, quats, scales, opacities, colors, viewmat, K, width, height, tile_size=16):
+    """Baseline: per 16 px tile, dense (pixels x Gaussians) alpha, cumprod transmittance, autograd.
+
+    Same projection, tile rule and constants as ``rasterize``; returns (rgb, alpha, expected depth).
+    """
+    proj = project(means, quats, scales, opacities, viewmat, K, width, height)
+    x0, x1, y0, y1 = tile_ranges(proj.means2d, proj.radii, width, height, tile_size)
+    order = torch.argsort(proj.depths.detach(), stable=True)
+    features = torch.cat([colors, proj.depths[:, None], torch.ones_like(proj.depths)[:, None]], -1)
+    rows = []
+    for ty in range(-(-height // tile_size)):
+        row = []
+        for tx in range(-(-width // tile_size)):
+            ys = torch.arange(ty * tile_size, min((ty + 1) * tile_size, height)) + 0.5
+            xs = torch.arange(tx * tile_size, min((tx + 1) * tile_size, width)) + 0.5
+            pix = torch.stack(torch.meshgrid(ys, xs, indexing="ij")[::-1], -1).reshape(-1, 2)
+            ids = order[(proj.valid & (x0 <= tx) & (tx < x1) & (y0 <= ty) & (ty < y1))[order]]
+            d = pix[:, None, :] - proj.means2d[ids][None]
+            a, b, c = proj.conics[ids].unbind(-1)
+            power = -0.5 * (a * d[..., 0] ** 2 + 2 * b * d[..., 0] * d[..., 1] + c * d[..., 1] ** 2)
+            alpha = (proj.log_opacities[ids] + power).exp().clamp(max=ALPHA_MAX)
+            alpha = torch.where(alpha >= ALPHA_MIN, alpha, torch.zeros_like(alpha))
+            trans_after = torch.cumprod(1 - alpha, dim=1)
+            trans = torch.cat([torch.ones_like(alpha[:, :1]), trans_after[:, :-1]], 1)
+            weight = torch.where(trans_after >= T_MIN, alpha * trans, torch.zeros_like(alpha))
+            row.append((weight @ features[ids]).reshape(len(ys), len(xs), -1))
+        rows.append(torch.cat(row, 1))
+    acc = torch.cat(rows, 0)
+    alpha = acc[..., -1:]
+    return acc[..., :-2], alpha, acc[..., -2:-1] / alpha.clamp_min(1e-10)
+
+
+# ------------------------------------------------------------------------------------------------
+# One configuration, in a fresh process
+
+
+def rss_mb() -> float:
+    """Current resident set size (MiB), from /proc/self/statm."""
+    return int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2 ** 20
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
+
+
+def child(config: dict) -> dict:
+    """Time forward and backward passes of one configuration and measure its peak memory."""
+    if config["variant"] == "phases":
+        return phase_breakdown(config["repeats"])
+    if config.get("threads"):
+        torch.set_num_threads(config["threads"])
+    scene = head_scene(config["n"])
+    view, K = head_camera(config["resolution"])
+    fn = dense_tiles_rasterize if config["variant"] == "dense_tiles" else rasterize
+    r = config["resolution"]
+    leaves = {k: v.clone().requires_grad_() for k, v in scene.items()}
+    base_mb = rss_mb()
+
+    def forward():
+        return fn(leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"], leaves["colors"], view, K,
+                  r, r)
+
+    forward_s, backward_s, cpu_s = [], [], []
+    for i in range(config["repeats"] + 1):  # the first pass is a warm-up
+        c0, t0 = time.process_time(), time.perf_counter()
+        rgb, alpha, depth = forward()
+        t1 = time.perf_counter()
+        (rgb.sum() + alpha.sum() + depth.sum()).backward()
+        t2, c2 = time.perf_counter(), time.process_time()
+        if i:
+            forward_s.append(t1 - t0)
+            backward_s.append(t2 - t1)
+            cpu_s.append(c2 - c0)
+        for leaf in leaves.values():
+            leaf.grad = None
+    out = {"forward_s": forward_s, "backward_s": backward_s, "process_cpu_s": cpu_s, "peak_mb": peak_rss_mb() - base_mb,
+           "alpha_mean": float(alpha.mean()), "torch_threads": torch.get_num_threads()}
+    if config["variant"] == "torch":
+        with torch.no_grad():
+            proj = project(*(scene[k] for k in ("means", "quats", "scales", "opacities")), view, K, r, r)
+            bins = bin_gaussians(proj, r, r)
+        out["block_pairs"] = int(bins.gaussian_ids.numel())
+    return out
+
+
+def run_child(config: dict) -> dict:
+    command = [sys.executable, str(Path(__file__).resolve()), "--child", json.dumps(config)]
+    env = dict(os.environ, **({"OMP_WAIT_POLICY": config["omp_wait_policy"]} if config.get("omp_wait_policy") else {}))
+    done = subprocess.run(command, capture_output=True, text=True, check=True, env=env)
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def phase_breakdown(repeats: int) -> dict:
+    """Seconds of each stage at the goal configuration (repeats after a warm-up)."""
+    from panolam.rasterizer import _Composite, _finish
+
+    n, r = GOAL_CONFIG
+    scene = head_scene(n)
+    view, K = head_camera(r)
+    times = {k: [] for k in ("project", "bin", "composite_forward", "composite_backward_and_projection_backward")}
+    for i in range(repeats + 1):
+        leaves = {k: v.clone().requires_grad_() for k, v in scene.items()}
+        t0 = time.perf_counter()
+        proj = project(leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"], view, K, r, r)
+        t1 = time.perf_counter()
+        bins = bin_gaussians(proj, r, r)
+        t2 = time.perf_counter()
+        acc = _Composite.apply(proj.means2d, proj.conics, proj.log_opacities, leaves["colors"], proj.depths, bins)
+        t3 = time.perf_counter()
+        sum(o.sum() for o in _finish(acc, None)).backward()
+        t4 = time.perf_counter()
+        if i:
+            for key, seconds in zip(times, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
+                times[key].append(seconds)
+    return times
+
+
+# ------------------------------------------------------------------------------------------------
+# Running it all
+
+
+def configurations(plan: dict) -> list[dict]:
+    """The rasterizer's configurations (run every round); see dense_configurations for the baseline."""
+    configs = []
+    for n in plan["counts"]:
+        configs.append({"variant": "torch", "n": n, "resolution": 256,
+                        "repeats": plan["repeats"] if n <= 20_000 else plan["repeats_large"]})
+    for r in plan["resolutions"]:
+        if r != 256:
+            configs.append({"variant": "torch", "n": 20_000, "resolution": r,
+                            "repeats": plan["repeats"] if r <= 256 else plan["repeats_large"]})
+    configs.append({"variant": "torch", "n": 20_000, "resolution": 256, "repeats": plan["repeats"], "threads": 1})
+    configs.append({"variant": "torch", "n": 20_000, "resolution": 256, "repeats": plan["repeats"],
+                    "omp_wait_policy": "PASSIVE"})
+    configs.append({"variant": "phases", "repeats": plan["repeats"]})
+    return configs
+
+
+def dense_configurations(plan: dict) -> list[dict]:
+    return [{"variant": "dense_tiles", "n": n, "resolution": 256, "repeats": plan["dense_repeats"]}
+            for n in plan["dense_counts"]]
+
+
+def machine_info() -> dict:
+    models = [line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+              if line.startswith("model name")] if Path("/proc/cpuinfo").exists() else []
+    try:
+        revision = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                                  cwd=HERE).stdout.strip()
+    except OSError:
+        revision = "unknown"
+    return {"cpu_model": models[0] if models else platform.processor(), "cpu_count": os.cpu_count(),
+            "platform": platform.platform(), "python": platform.python_version(), "torch": torch.__version__,
+            "torch_threads": torch.get_num_threads(), "git_revision": revision or "unknown"}
+
+
+def measure(plan: dict, mode: str, command: str) -> dict:
+    results = {"mode": mode, "command": command, "machine": machine_info(), "plan": plan,
+               "date_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+               "load_average_before": os.getloadavg(), "rows": []}
+    start = time.perf_counter()
+    runs = {}
+    jobs = [c for _ in range(plan["rounds"]) for c in configurations(plan)] + dense_configurations(plan)
+    for config in jobs:
+        print(f"[{time.perf_counter() - start:5.0f} s] {config}", flush=True)
+        runs.setdefault(json.dumps(config), []).append({**run_child(config), "load_average": os.getloadavg()[0]})
+    for key, outs in runs.items():
+        config = json.loads(key)
+        if config["variant"] == "phases":
+            results["phases"] = {k: statistics.median(sum((o[k] for o in outs), [])) for k in outs[0]
+                                 if k != "load_average"}
+        else:
+            results["rows"].append(aggregate(config, outs))
+    results["load_average_after"] = os.getloadavg()
+    results["benchmark_seconds"] = time.perf_counter() - start
+    return results
+
+
+def aggregate(config: dict, outs: list[dict]) -> dict:
+    """One table row from a configuration's runs: all rounds' samples pooled, medians, worst peak."""
+    pooled = {k: sum((o[k] for o in outs), []) for k in ("forward_s", "backward_s", "process_cpu_s")}
+    return {**config, **outs[0], **pooled, "rounds": len(outs), "peak_mb": max(o["peak_mb"] for o in outs),
+            "load_average": statistics.mean(o["load_average"] for o in outs),
+            "forward_median_s": statistics.median(pooled["forward_s"]),
+            "backward_median_s": statistics.median(pooled["backward_s"]),
+            "cpu_median_s": statistics.median(pooled["process_cpu_s"])}
+
+
+# ------------------------------------------------------------------------------------------------
+# Report
+
+
+def is_default(row: dict) -> bool:
+    """Run with the default thread count and OpenMP wait policy."""
+    return not row.get("threads") and not row.get("omp_wait_policy")
+
+
+def find_row(results: dict, variant: str, n: int, resolution: int, threads=None, policy=None) -> dict | None:
+    for row in results["rows"]:
+        if ((row["variant"], row["n"], row["resolution"], row.get("threads"), row.get("omp_wait_policy"))
+                == (variant, n, resolution, threads, policy)):
+            return row
+    return None
+
+
+def goal_verdict(results: dict) -> tuple[bool, float]:
+    row = find_row(results, "torch", *GOAL_CONFIG)
+    total = row["forward_median_s"] + row["backward_median_s"]
+    return total <= GOAL_SECONDS, total
+
+
+def fwd_bwd(row: dict) -> str:
+    total = row["forward_median_s"] + row["backward_median_s"]
+    return f"{total:.3f} s (load average {row['load_average']:.1f})"
+
+
+def table(rows: list[dict]) -> list[str]:
+    lines = ["| variant | Gaussians | resolution | threads | OMP wait | forward s | backward s | fwd+bwd s "
+             "| process CPU s | peak MiB | block pairs | load avg |",
+             "|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| {r['variant']} | {r['n']:,} | {r['resolution']} | {r['torch_threads']} "
+                     f"| {r.get('omp_wait_policy') or 'default'} | {r['forward_median_s']:.3f} "
+                     f"| {r['backward_median_s']:.3f} | {r['forward_median_s'] + r['backward_median_s']:.3f} "
+                     f"| {r['cpu_median_s']:.3f} | {r['peak_mb']:.0f} | {r.get('block_pairs', '')} "
+                     f"| {r['load_average']:.1f} |")
+    return lines
+
+
+def markdown(results: dict, plot_note: str) -> str:
+    m = results["machine"]
+    met, total = goal_verdict(results)
+    goal = find_row(results, "torch", *GOAL_CONFIG)
+    single = find_row(results, "torch", *GOAL_CONFIG, threads=1)
+    passive = find_row(results, "torch", *GOAL_CONFIG, policy="PASSIVE")
+    dense = find_row(results, "dense_tiles", *GOAL_CONFIG) or find_row(results, "dense_tiles", 5_000, 256)
+    counts = [r for r in results["rows"] if r["variant"] == "torch" and r["resolution"] == 256 and is_default(r)]
+    sizes = [r for r in results["rows"] if r["variant"] == "torch" and r["n"] == 20_000 and is_default(r)]
+    others = [r for r in results["rows"] if r not in counts and r not in sizes]
+    phases = results["phases"]
+    lines = [
+        "# Rasterizer speed (pure-PyTorch 3D Gaussian splatting on CPU)", "",
+        f"Measured {results['date_utc']} in {results['mode']} mode ({results['benchmark_seconds'] / 60:.1f} min) on "
+        f"{m['cpu_model']}, {m['cpu_count']} CPUs, torch {m['torch']} with {m['torch_threads']} threads, "
+        f"Python {m['python']}, {m['platform']}, git {m['git_revision']}.", "",
+        "Reproduce from the repository root:", "", "```bash", results["command"], "```", "",
+        f"**Goal (forward + backward of 20K Gaussians at 256x256 <= {GOAL_SECONDS} s): "
+        f"{'met' if met else 'not met'}** - median forward {goal['forward_median_s']:.3f} s + backward "
+        f"{goal['backward_median_s']:.3f} s = {total:.3f} s with {goal['torch_threads']} threads; peak memory "
+        f"{goal['peak_mb']:.0f} MiB (mean load average {goal['load_average']:.1f}). Same configuration with one "
+        f"thread: {fwd_bwd(single)}; with two threads and `OMP_WAIT_POLICY=PASSIVE`: {fwd_bwd(passive)}.", "",
+        f"Load average (1 min) was {results['load_average_before'][0]:.1f} before and "
+        f"{results['load_average_after'][0]:.1f} after the run (per row in the tables). Above the core count "
+        "other processes share the CPUs and wall times grow; two-thread runs suffer most because libgomp's "
+        "default wait policy spins at every parallel region's barrier while the other thread is descheduled. "
+        "The `OMP_WAIT_POLICY=PASSIVE` row (threads sleep instead) and the single-thread row show what to "
+        "expect on a shared machine.", "",
+        f"Method: one fresh subprocess per row and round ({results['plan']['rounds']} interleaved round(s) of every "
+        "row of the rasterizer, one of the baseline); a warm-up pass, then timed repeats, medians over all "
+        "rounds' repeats; load avg is the mean over rounds; forward = "
+        "`rasterize(...)`, backward = `(rgb.sum() + alpha.sum() + depth.sum()).backward()`; process CPU = "
+        "`time.process_time` for forward + backward (both threads). Peak MiB = `ru_maxrss` at the end minus "
+        f"the resident size before the first render. Block pairs = ({BLOCK}x{BLOCK} px block, Gaussian) pairs "
+        "after culling. Scenes: see the docstring of `benchmarks/rasterizer_speed.py`.", "",
+        "## Against the number of Gaussians (256x256)", "", *table(counts), "",
+        "## Against the resolution (20K Gaussians)", "", *table(sizes), "",
+        "## Single thread, passive OpenMP waiting and the dense-tiles baseline", "", *table(others), "",
+    ]
+    if not dense:
+        lines += ["The dense-tiles baseline is not run in quick mode.", ""]
+    if dense:
+        ours = find_row(results, "torch", dense["n"], dense["resolution"])
+        speedup = (dense["forward_median_s"] + dense["backward_median_s"]) / (
+            ours["forward_median_s"] + ours["backward_median_s"])
+        lines += [f"At {dense['n']:,} Gaussians the dense-tiles baseline takes {speedup:.0f}x as long as `rasterize` "
+                  f"and {dense['peak_mb'] / max(ours['peak_mb'], 1):.0f}x the memory.", ""]
+    lines += [
+        "## Where the time goes (20K Gaussians, 256x256, medians)", "",
+        "| stage | median s |", "|---|---:|",
+        *[f"| {k.replace('_', ' ')} | {v:.3f} |" for k, v in phases.items()], "",
+        "Compositing dominates: each step evaluates every pixel of a block against up to k Gaussians of "
+        "its depth-sorted list (about a dozen tensor ops forward, two dozen backward, three transcendentals "
+        "each way); binning drops (block, Gaussian) pairs whose alpha is below 1/255 on the whole block, so "
+        "roughly half of the evaluated (pixel, Gaussian) pairs contribute. Two threads used "
+        f"{goal['cpu_median_s']:.3f} s of process CPU against {single['cpu_median_s']:.3f} s for one: "
+        f"{100 * (1 - single['cpu_median_s'] / goal['cpu_median_s']):.0f}% of it goes to waiting at the ends "
+        "of parallel regions and to work that does not split (Python, small ops), as the steps are many "
+        "medium-sized ops.", "",
+        plot_note, "",
+    ]
+    return "\n".join(lines)
+
+
+def plot(results: dict, path: Path) -> str:
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return "Plot skipped: matplotlib is not installed (`pip install matplotlib`, then `--report-only`)."
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for ax, key, rows, label in (
+            (axes[0], "n", [r for r in results["rows"] if r["variant"] == "torch" and r["resolution"] == 256
+                            and is_default(r)], "Gaussians (256x256)"),
+            (axes[1], "resolution", [r for r in results["rows"] if r["variant"] == "torch" and r["n"] == 20_000
+                                     and is_default(r)], "resolution (20K Gaussians)")):
+        rows = sorted(rows, key=lambda r: r[key])
+        xs = [r[key] for r in rows]
+        ax.plot(xs, [r["forward_median_s"] for r in rows], "o-", label="forward")
+        ax.plot(xs, [r["backward_median_s"] for r in rows], "s-", label="backward")
+        ax.set_xlabel(label)
+        ax.set_ylabel("seconds (median)")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.grid(True, alpha=0.3)
+        ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return f"Plot: `{path.name}`."
+
+
+def report_stem(mode: str) -> Path:
+    """benchmarks/reports/rasterizer_speed (full mode) or rasterizer_speed_quick."""
+    return REPORTS / (NAME if mode == "full" else f"{NAME}_{mode}")
+
+
+def write_reports(results: dict) -> None:
+    stem = report_stem(results["mode"])
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    note = plot(results, stem.with_suffix(".png"))
+    stem.with_suffix(".md").write_text(markdown(results, note))
+    print(f"wrote {stem}.md")
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="a smoke run, under 2 minutes")
+    parser.add_argument("--report-only", action="store_true", help="rewrite the markdown and plot from the JSON")
+    parser.add_argument("--child", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.child:
+        print(json.dumps(child(json.loads(args.child))))
+        return
+    mode = "quick" if args.quick else "full"
+    json_path = report_stem(mode).with_suffix(".json")
+    if args.report_only:
+        write_reports(json.loads(json_path.read_text()))
+        return
+    command = "python benchmarks/rasterizer_speed.py" + (" --quick" if args.quick else "")
+    results = measure(QUICK if args.quick else FULL, mode, command)
+    json_path.parent.mkdir(parents=True, exist_ok=True)
+    json_path.write_text(json.dumps(results, indent=1))
+    write_reports(results)
+    met, total = goal_verdict(results)
+    print(f"goal ({GOAL_SECONDS} s for fwd+bwd, 20K, 256^2): {'met' if met else 'not met'} ({total:.3f} s)")
+
+
+if __name__ == "__main__":
+    main()

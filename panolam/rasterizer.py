@@ -1,0 +1,630 @@
+"""Differentiable 3D Gaussian splatting in pure PyTorch, fast enough to train on a CPU.
+
+The API follows ``gsplat.rasterization``; every function in this module shares these conventions.
+
+Inputs
+    means (N, 3) world units; quats (N, 4) wxyz (normalized here; a zero quaternion is the
+    identity); scales (N, 3) activated standard deviations, world units; opacities (N,) in [0, 1];
+    colors (N, D) any D features (RGB for D = 3).
+Camera
+    viewmat: world-to-camera 4x4, OpenCV (+x right, +y down, +z forward); K: 3x3 pixel
+    intrinsics, ``uv = K x / z`` (skew ignored). Pixel (row i, column j) has its centre at
+    ``(j + 0.5, i + 0.5)``. Pass ``datagen.cameras.pixel_intrinsics(K_norm, W, H)`` and the inverse
+    of a cam2world. A batch of cameras, viewmat (C, 4, 4) and K (C, 3, 3) or (3, 3), is rendered
+    one camera after the other and every output gains a leading C.
+Projection (EWA splatting)
+    ``cov2d = J W Sigma W^T J^T + 0.3 I`` (px^2), with J the perspective Jacobian at the camera-space
+    mean whose x/z and y/z are clamped to the image border plus 0.3 of the half field of view
+    (gsplat's frustum clamp). Culled: z < near_plane, z > far_plane or z <= 0; det(cov2d) <= 0;
+    opacity < 1/255 (it could never pass the alpha threshold); non-finite projections. The
+    projection is computed in float64 so that huge or tiny scales stay finite.
+Tiles
+    radius r = ceil(3 sqrt(lambda_max(cov2d))) px. A Gaussian takes part only in the tiles
+    (``tile_size`` px squares) that its box ``[u - r, u + r] x [v - r, v + r]`` touches, as in the
+    CUDA rasterizers: the output depends on ``tile_size`` only through this 3-sigma cut.
+Compositing, front to back by the camera z of each mean
+    ``alpha_i = min(0.99, o_i exp(-0.5 d^T cov2d^-1 d))``; alpha < 1/255 is skipped; a pixel stops
+    before the first Gaussian that would take its transmittance below 1e-4.
+    ``w_i = alpha_i T_i`` with ``T_i = prod_{j<i} (1 - alpha_j)``.
+Outputs
+    rgb (H, W, D) = sum w_i c_i + (1 - alpha) background (background defaults to 0);
+    alpha (H, W, 1) = sum w_i; depth (H, W, 1) = sum w_i z_i / alpha, the expected depth (gsplat's
+    "ED", 0 where alpha is 0). Gradients reach means, quats, scales, opacities, colors, background
+    (and viewmat); nothing reaches K.
+
+Implementation. Projection and binning run once for all Gaussians. Binning pairs each Gaussian with
+the 4x4 px blocks of its tiles that its alpha >= 1/255 ellipse reaches (exact: dropped pairs could
+only be skipped) and sorts the pairs by (block, depth) with one stable sort. Compositing is a custom
+autograd Function that walks the blocks' depth-sorted lists in chunks of k Gaussians, many blocks at
+once, so each step is a dozen tensor ops on a (blocks, pixels, k) array of bounded size (a
+preallocated workspace); blocks whose pixels have all stopped leave the walk. Transmittance is a
+cumulative sum of log(1 - alpha). The backward pass replays the walk back to front, recomputes each
+step and applies the closed-form 3DGS gradients
+``dL/dalpha_i = T_i (c_i . g) - (sum_{j>i} w_j c_j . g) / (1 - alpha_i)`` (g = dL/d pixel), the
+suffix sums carried from the steps behind; pixel sums of dL/dexponent times [1, x, y, x^2, xy, y^2]
+give the gradients of the 2D mean, conic and opacity. No N x H x W tensor is ever built.
+``rasterize_reference`` is a brute-force implementation (every pixel against every Gaussian,
+autograd only) for tests. ``backend="auto"`` uses ``gsplat.rasterization`` for CUDA tensors when
+gsplat is installed (its constants differ slightly: alpha clamp 0.999, opacity-aware 3.33 sigma
+extent).
+"""
+from __future__ import annotations
+
+import importlib
+import math
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch.autograd.function import once_differentiable
+
+EPS2D = 0.3                 # px^2 added to the 2D covariance diagonal
+ALPHA_MAX = 0.99            # alpha clamp
+ALPHA_MIN = 1.0 / 255.0     # smaller alphas are skipped
+T_MIN = 1e-4                # a pixel stops before its transmittance would drop below this
+EXTENT_SIGMAS = 3.0         # tile extent of a Gaussian, in standard deviations of its major axis
+LAMBDA_FLOOR = 0.1          # floor of (mid^2 - det) in the eigenvalue formula, as in the reference 3DGS
+DEPTH_ALPHA_FLOOR = 1e-10   # expected depth = sum(w z) / max(alpha, this), as gsplat's "ED"
+SCALE_MAX = 1e30            # world units; larger scales are clamped (the projection stays finite)
+
+# The fast path evaluates at most this many (pixel, Gaussian) pairs per vectorized step: about
+# 1 MiB per float32 buffer, so a step's working set stays in the caches.
+STEP_PAIRS = 1 << 18
+CHUNK_MIN, CHUNK_MAX = 16, 256   # Gaussians per block per step (a power of two in this range)
+BLOCK = 4                        # px side of the work blocks (a divisor of tile_size, see bin_gaussians)
+_REACH_MARGIN = 1e-2             # slack on the 1/255 ellipse so rounding never drops a visible pair
+# Exponents are raised to this before exp(): exp() of it is below ALPHA_MIN (skipped either way),
+# and exp() of very negative numbers is slow on x86 (denormal results).
+_EXPONENT_FLOOR = math.log(ALPHA_MIN) - 1.0
+
+
+# ---------------------------------------------------------------------------------------------
+# Public API
+
+
+def rasterize(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int, background=None,
+              near_plane: float = 0.01, far_plane: float = 1e10, tile_size: int = 16, backend: str = "auto"):
+    """Render Gaussians -> (rgb (H, W, D), alpha (H, W, 1), expected depth (H, W, 1)).
+
+    Conventions are in the module docstring. With viewmat (C, 4, 4) every output gets a leading C
+    (cameras are rendered one after the other; background may then be (C, D)). ``backend``:
+    "torch" (the pure-PyTorch path, CPU tensors), "gsplat" (``gsplat.rasterization``, CUDA only)
+    or "auto" (gsplat for CUDA tensors when it is importable, else torch).
+    """
+    if viewmat.dim() == 3:
+        return _rasterize_cameras(rasterize, means, quats, scales, opacities, colors, viewmat, K, width, height,
+                                  background, near_plane=near_plane, far_plane=far_plane, tile_size=tile_size,
+                                  backend=backend)
+    if _use_gsplat(backend, means):
+        return _rasterize_gsplat(means, quats, scales, opacities, colors, viewmat, K, width, height, background,
+                                 near_plane, far_plane, tile_size)
+    if means.device.type != "cpu":
+        raise ValueError(f"the pure-PyTorch rasterizer runs on CPU tensors, not {means.device}; "
+                         "install gsplat for CUDA or move the tensors to the CPU")
+    proj = project(means, quats, scales, opacities, viewmat, K, width, height, near_plane, far_plane)
+    bins = bin_gaussians(proj, width, height, tile_size)
+    acc = _Composite.apply(proj.means2d, proj.conics, proj.log_opacities, colors, proj.depths, bins)
+    return _finish(acc, background)
+
+
+class Projection(NamedTuple):
+    """Per-Gaussian screen-space quantities for one camera (culled Gaussians hold zeros)."""
+
+    means2d: torch.Tensor        # (N, 2) px
+    conics: torch.Tensor         # (N, 3) (a, b, c) of the inverse 2D covariance [[a, b], [b, c]], px^-2
+    depths: torch.Tensor         # (N,) camera-space z of the mean
+    log_opacities: torch.Tensor  # (N,) log(opacity)
+    cov2d: torch.Tensor          # (N, 3) float64 (xx, xy, yy) of the 2D covariance, px^2 (no gradient)
+    radii: torch.Tensor          # (N,) float64 tile extent r in px (no gradient)
+    valid: torch.Tensor          # (N,) bool: not culled
+
+
+def project(means, quats, scales, opacities, viewmat, K, width: int, height: int, near_plane: float = 0.01,
+            far_plane: float = 1e10) -> Projection:
+    """EWA projection of N Gaussians into one camera (differentiable, float64 inside).
+
+    Scales above ``SCALE_MAX`` world units are clamped to it, so float64 never overflows.
+    """
+    wd = torch.float64
+    view, Kd = viewmat.to(wd), K.detach().to(wd)
+    cam = means.to(wd) @ view[:3, :3].T + view[:3, 3]
+    x, y, z = cam.unbind(-1)
+    in_depth = (z >= near_plane) & (z <= far_plane) & (z > 0)
+    z = torch.where(in_depth, z, torch.ones_like(z))  # culled depths replaced so nothing divides by 0
+    fx, fy, cx, cy = Kd[0, 0], Kd[1, 1], Kd[0, 2], Kd[1, 2]
+    jac = _perspective_jacobian(x, y, z, fx, fy, cx, cy, width, height)
+    m = (jac @ view[:3, :3] @ quat_to_rotmat(quats.to(wd))) * scales.to(wd).clamp(max=SCALE_MAX)[:, None, :]
+    cov = m @ m.transpose(1, 2)
+    a, b, c = cov[:, 0, 0] + EPS2D, cov[:, 0, 1], cov[:, 1, 1] + EPS2D
+    det = a * c - b * b
+    ok = in_depth & (det > 0)
+    det = torch.where(ok, det, torch.ones_like(det))
+    conics = torch.stack([c, -b, a], -1) / det[:, None]
+    means2d = torch.stack([fx * x / z + cx, fy * y / z + cy], -1)
+    mid = 0.5 * (a + c)
+    radii = torch.ceil(EXTENT_SIGMAS * torch.sqrt(mid + torch.sqrt((mid * mid - det).clamp_min(LAMBDA_FLOOR))))
+    dtype = means.dtype
+    valid = ok & (opacities >= ALPHA_MIN) & torch.isfinite(means2d.to(dtype)).all(-1)
+    keep = valid[:, None]
+    return Projection(
+        means2d=torch.where(keep, means2d, 0.0).to(dtype),
+        conics=torch.where(keep, conics, 0.0).to(dtype),
+        depths=torch.where(valid, z, 0.0).to(dtype),
+        log_opacities=torch.log(torch.where(valid, opacities, torch.ones_like(opacities))),
+        cov2d=torch.where(keep, torch.stack([a, b, c], -1), 0.0).detach(),
+        radii=torch.where(valid, radii, 0.0).detach(),
+        valid=valid,
+    )
+
+
+def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
+    """(N, 4) wxyz quaternions, any norm -> (N, 3, 3) rotation matrices (a zero quaternion -> identity)."""
+    w, x, y, z = F.normalize(quats, dim=-1, eps=1e-12).unbind(-1)
+    rows = [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]
+    return torch.stack(rows, -1).reshape(-1, 3, 3)
+
+
+def _perspective_jacobian(x, y, z, fx, fy, cx, cy, width, height):
+    """(N, 2, 3) Jacobian of uv w.r.t. the camera-space point, x/z and y/z clamped as gsplat does."""
+    tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
+    tx = z * torch.clamp(x / z, -(cx / fx + 0.3 * tan_x), (width - cx) / fx + 0.3 * tan_x)
+    ty = z * torch.clamp(y / z, -(cy / fy + 0.3 * tan_y), (height - cy) / fy + 0.3 * tan_y)
+    zero = torch.zeros_like(z)
+    return torch.stack([fx / z, zero, -fx * tx / (z * z), zero, fy / z, -fy * ty / (z * z)], -1).reshape(-1, 2, 3)
+
+
+class Bins(NamedTuple):
+    """The (block, Gaussian) pairs of one camera, grouped by block, front to back within a block.
+
+    Blocks are ``block`` px squares numbered row-major, ``id = by * blocks_x + bx``; block
+    (bx, by) covers pixel columns ``[bx * block, (bx + 1) * block)`` and the same rows.
+    """
+
+    width: int
+    height: int
+    block: int
+    blocks_x: int
+    blocks_y: int
+    gaussian_ids: torch.Tensor  # (M,) int64
+    offsets: torch.Tensor       # (blocks,) int64: start of each block's list in gaussian_ids
+    counts: torch.Tensor        # (blocks,) int64: length of each block's list
+
+
+def tile_ranges(means2d, radii, width: int, height: int, tile_size: int):
+    """Tile box [x0, x1) x [y0, y1) (int64 tensors) that each Gaussian's [u +- r] x [v +- r] touches."""
+    tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
+    u, v = means2d.detach().to(torch.float64).unbind(-1)
+    r = radii.to(torch.float64)
+    box = lambda lo, hi, n: (torch.floor(lo / tile_size).clamp(0, n).long(),  # noqa: E731
+                             torch.ceil(hi / tile_size).clamp(0, n).long())
+    x0, x1 = box(u - r, u + r, tiles_x)
+    y0, y1 = box(v - r, v + r, tiles_y)
+    return x0, x1, y0, y1
+
+
+@torch.no_grad()
+def bin_gaussians(proj: Projection, width: int, height: int, tile_size: int = 16) -> Bins:
+    """Pair every valid Gaussian with the pixel blocks where it can be visible; lists sorted by depth.
+
+    Blocks are ``gcd(tile_size, BLOCK)`` px. A block is paired with a Gaussian when (i) its tile lies
+    in the Gaussian's tile box (the rasterization rule of the module docstring) and (ii) the ellipse
+    ``o exp(-0.5 d^T conic d) >= 1/255`` spans a pixel column of the block within the block's rows.
+    (ii) only drops pairs whose alpha is below 1/255 on the whole block, which compositing skips
+    anyway: the image is the one whole tiles give, for much less work. The ellipse's exact column
+    range is computed once per (Gaussian, block row).
+    """
+    block = math.gcd(tile_size, BLOCK)
+    per_tile = tile_size // block
+    blocks_x, blocks_y = -(-width // block), -(-height // block)
+    x0, x1, y0, y1 = tile_ranges(proj.means2d, proj.radii, width, height, tile_size)
+    u, v = proj.means2d.detach().to(torch.float64).unbind(-1)
+    sxx, sxy, syy = proj.cov2d.unbind(-1)
+    reach = torch.where(proj.valid, 2.0 * (proj.log_opacities.detach().double() - math.log(ALPHA_MIN)), 0.0)
+    reach = reach + _REACH_MARGIN                       # the ellipse is d^T cov2d^-1 d <= reach
+    det = torch.where(proj.valid, sxx * syy - sxy * sxy, 1.0)
+    half_y = torch.sqrt(reach * syy)
+    # Block rows holding a pixel-centre row inside the ellipse, within the tile box and the image.
+    by0 = torch.maximum(y0 * per_tile, torch.floor(torch.ceil(v - half_y - 0.5) / block).clamp(0, blocks_y).long())
+    by1 = torch.minimum(torch.minimum(y1 * per_tile, torch.tensor(blocks_y)),
+                        torch.floor(torch.floor(v + half_y - 0.5) / block).clamp(-1, blocks_y).long() + 1)
+    n_rows = torch.where(proj.valid, (by1 - by0).clamp_min(0), 0)
+    order = torch.argsort(proj.depths.detach(), stable=True)  # pairs are generated front to back
+    g_row = torch.repeat_interleave(order, n_rows[order])
+    by = by0[g_row] + _ranks(n_rows[order])
+    per_gaussian = torch.stack([u, v, sxx, sxy, syy, det, reach, half_y, (x0 * per_tile).double(),
+                                torch.minimum(x1 * per_tile, torch.tensor(blocks_x)).double()], 1)
+    u, v, sxx, sxy, syy, det, reach, half_y, bx_first, bx_end = per_gaussian.index_select(0, g_row).unbind(1)
+    y_lo = torch.maximum(by * block + 0.5 - v, -half_y)     # pixel-centre rows of the block, in the ellipse
+    y_hi = torch.minimum(by * block + (block - 0.5) - v, half_y)
+    x_lo, x_hi = _ellipse_columns(sxx, sxy, syy, det, reach, y_lo, y_hi)
+    bx0 = torch.maximum(torch.floor(torch.ceil(u + x_lo - 0.5) / block), bx_first)
+    bx1 = torch.minimum(torch.floor(torch.floor(u + x_hi - 0.5) / block) + 1, bx_end)
+    n_blocks = torch.where(y_lo <= y_hi, (bx1 - bx0).clamp_min(0), 0.0).long()
+    gid = torch.repeat_interleave(g_row, n_blocks)
+    ids = torch.repeat_interleave(by * blocks_x + bx0.long(), n_blocks) + _ranks(n_blocks)
+    ids, perm = torch.sort(ids, stable=True)            # stable: depth order survives within a block
+    counts = torch.bincount(ids, minlength=blocks_x * blocks_y)
+    return Bins(width, height, block, blocks_x, blocks_y, gid[perm], torch.cumsum(counts, 0) - counts, counts)
+
+
+def _ranks(counts: torch.Tensor) -> torch.Tensor:
+    """0, 1, ..., counts[0] - 1, 0, 1, ..., counts[1] - 1, ...: the index of each repeat."""
+    starts = torch.cumsum(counts, 0) - counts
+    return torch.arange(int(counts.sum())) - torch.repeat_interleave(starts, counts)
+
+
+def _ellipse_columns(sxx, sxy, syy, det, reach, y_lo, y_hi):
+    """Range of x over the ellipse ``d^T S^-1 d <= reach`` (S = [[sxx, sxy], [sxy, syy]], det = |S|)
+    within the band y_lo <= y <= y_hi (a non-empty part of [-sqrt(reach syy), sqrt(reach syy)]).
+
+    The right edge x(y) = (sxy y + sqrt(det (reach syy - y^2))) / syy is concave, largest at the
+    ellipse's rightmost point y = sxy sqrt(reach / sxx); the left edge mirrors it. Clamping that y
+    into the band gives the band's extreme.
+    """
+    y_extreme = sxy * torch.sqrt(reach / sxx)
+    y_right, y_left = torch.clamp(y_extreme, y_lo, y_hi), torch.clamp(-y_extreme, y_lo, y_hi)
+    root = lambda y: torch.sqrt((det * (reach * syy - y * y)).clamp_min(0.0))  # noqa: E731
+    return (sxy * y_left - root(y_left)) / syy, (sxy * y_right + root(y_right)) / syy
+
+
+# ---------------------------------------------------------------------------------------------
+# Helpers of the public API
+
+
+def _rasterize_cameras(render, means, quats, scales, opacities, colors, viewmats, Ks, width, height, background,
+                       **options):
+    """Loop ``render`` over C cameras and stack the outputs."""
+    C = viewmats.shape[0]
+    Ks = Ks.expand(C, 3, 3)
+    bgs = [None] * C if background is None else background.expand(C, colors.shape[-1])
+    outs = [render(means, quats, scales, opacities, colors, viewmats[i], Ks[i], width, height, bgs[i], **options)
+            for i in range(C)]
+    return tuple(torch.stack(parts) for parts in zip(*outs))
+
+
+def _finish(acc, background):
+    """(H, W, D + 2) sums [w c, w z, w] -> (rgb, alpha, expected depth), background composited."""
+    colors, depth_sum, alpha = acc[..., :-2], acc[..., -2:-1], acc[..., -1:]
+    depth = depth_sum / alpha.clamp_min(DEPTH_ALPHA_FLOOR)
+    if background is not None:
+        colors = colors + (1.0 - alpha) * background
+    return colors, alpha, depth
+
+
+def _use_gsplat(backend: str, means) -> bool:
+    if backend not in ("auto", "torch", "gsplat"):
+        raise ValueError(f"unknown backend {backend!r}; choose auto, torch or gsplat")
+    if backend == "torch" or (backend == "auto" and not means.is_cuda):
+        return False
+    try:
+        importlib.import_module("gsplat")
+    except ImportError:
+        if backend == "gsplat":
+            raise
+        return False
+    return True
+
+
+def _rasterize_gsplat(means, quats, scales, opacities, colors, viewmat, K, width, height, background, near_plane,
+                      far_plane, tile_size):
+    """One camera through ``gsplat.rasterization`` ("RGB+ED"), background composited here."""
+    from gsplat import rasterization
+
+    render, alpha, _ = rasterization(means, quats, scales, opacities, colors, viewmat[None], K[None], width, height,
+                                     near_plane=near_plane, far_plane=far_plane, tile_size=tile_size, eps2d=EPS2D,
+                                     render_mode="RGB+ED", rasterize_mode="classic")
+    colors, depth, alpha = render[0, ..., :-1], render[0, ..., -1:], alpha[0]
+    if background is not None:
+        colors = colors + (1.0 - alpha) * background
+    return colors, alpha, depth
+
+
+# ---------------------------------------------------------------------------------------------
+# Fast path: chunked block compositing with a closed-form backward
+
+# Columns of the per-Gaussian table the compositing steps gather from.
+_U, _V, _A, _B, _C, _LOGO, _FEAT = range(7)   # _FEAT: first of the features [colors..., z, 1]
+
+
+class _Step(NamedTuple):
+    """One vectorized step: k Gaussians (padded) from each of b blocks."""
+
+    blocks: torch.Tensor     # (b,) block ids
+    gids: torch.Tensor       # (b, k) Gaussian ids (padding repeats a valid id; its log-opacity is -inf)
+    params: torch.Tensor     # (b, k, cols) gathered table rows, u and v relative to the block centre
+    carry_in: torch.Tensor   # (b, P) log transmittance of each pixel before the step (-inf: stopped)
+
+
+class _Geometry:
+    """Pixel coordinates of a block and block centres, in the dtype of the computation."""
+
+    def __init__(self, bins: Bins, dtype):
+        bs = bins.block
+        self.pixels = bs * bs
+        self.coords = torch.arange(bs, dtype=dtype) + (0.5 - bs / 2)  # pixel centres from the block centre
+        yy, xx = torch.meshgrid(self.coords, self.coords, indexing="ij")
+        self.moment_basis = torch.stack([torch.ones_like(xx), xx, yy, xx * xx, xx * yy, yy * yy]).reshape(6, -1)
+        block = torch.arange(bins.blocks_x * bins.blocks_y)
+        self.centres = torch.stack([(block % bins.blocks_x) * bs, (block // bins.blocks_x) * bs], -1).to(dtype) + bs / 2
+        self.capacity = max(STEP_PAIRS, self.pixels * CHUNK_MIN)
+
+    def chunk_length(self, n_blocks: int, longest: int) -> int:
+        """Gaussians per block for a step over n_blocks blocks whose longest remaining list is
+        ``longest``: a power of two that fills the capacity, no longer than needed."""
+        k = min(max(self.capacity // (n_blocks * self.pixels), CHUNK_MIN), CHUNK_MAX)
+        return min(1 << (k.bit_length() - 1), 1 << (longest - 1).bit_length())
+
+
+def _outside_image(bins: Bins) -> torch.Tensor:
+    """(blocks, P) bool: pixels of edge blocks that lie outside the image."""
+    bs = bins.block
+    cols = torch.arange(bins.blocks_x * bs).reshape(bins.blocks_x, 1, bs) >= bins.width
+    rows = torch.arange(bins.blocks_y * bs).reshape(bins.blocks_y, bs, 1) >= bins.height
+    mask = rows[:, None, :, :] | cols[None, :, :, :]  # (blocks_y, blocks_x, bs, bs)
+    return mask.reshape(bins.blocks_x * bins.blocks_y, bs * bs)
+
+
+def _blocks_to_image(x: torch.Tensor, bins: Bins) -> torch.Tensor:
+    """(blocks, F, P) -> (H, W, F)."""
+    bs = bins.block
+    x = x.reshape(bins.blocks_y, bins.blocks_x, -1, bs, bs).permute(0, 3, 1, 4, 2)
+    return x.reshape(bins.blocks_y * bs, bins.blocks_x * bs, -1)[: bins.height, : bins.width]
+
+
+def _image_to_blocks(x: torch.Tensor, bins: Bins) -> torch.Tensor:
+    """(H, W, F) -> (blocks, F, P), zero outside the image."""
+    bs = bins.block
+    x = F.pad(x, (0, 0, 0, bins.blocks_x * bs - bins.width, 0, bins.blocks_y * bs - bins.height))
+    x = x.reshape(bins.blocks_y, bs, bins.blocks_x, bs, -1).permute(0, 2, 4, 1, 3)
+    return x.reshape(bins.blocks_x * bins.blocks_y, -1, bs * bs).contiguous()
+
+
+def _gather(table, bins: Bins, geo: _Geometry, blocks, done_count, k: int):
+    """Gaussian ids and table rows of the next k Gaussians of each block (padded with log-opacity -inf)."""
+    j = torch.arange(k)
+    idx = bins.offsets[blocks, None] + done_count[blocks, None] + j
+    pad = j >= (bins.counts[blocks] - done_count[blocks])[:, None]
+    gids = torch.take(bins.gaussian_ids, idx.clamp_max(bins.gaussian_ids.numel() - 1))
+    params = table.index_select(0, gids.flatten()).view(*gids.shape, -1)
+    params[..., _U:_V + 1] -= geo.centres[blocks][:, None, :]
+    params[..., _LOGO].masked_fill_(pad, -math.inf)
+    return gids, params
+
+
+def _raw_alpha(out, params, coords):
+    """(b, P, k) ``o exp(-0.5 d^T conic d)`` (before clamping and skipping) into ``out``.
+
+    The exponent is a per-row term plus a per-column term plus the product of the two offsets,
+    so only two full-size ops build it.
+    """
+    b, k = params.shape[:2]
+    bs = coords.numel()
+    u, v, a, bb, c, logo = (params[..., i][:, None, :] for i in range(_FEAT))
+    dx = coords[None, :, None] - u                      # (b, bs, k): per column
+    dy = coords[None, :, None] - v                      # (b, bs, k): per row
+    row = logo - 0.5 * c * dy * dy
+    col = -0.5 * a * dx * dx
+    grid = out.view(b, bs, bs, k)                       # (block row, block column)
+    torch.addcmul(row[:, :, None, :], (bb * dy)[:, :, None, :], dx[:, None, :, :], value=-1.0, out=grid)
+    grid.add_(col[:, None, :, :])
+    return out.clamp_min_(_EXPONENT_FLOOR).exp_()
+
+
+def _views(workspace, b: int, pixels: int, k: int, count: int):
+    """``count`` (b, P, k) views into the preallocated workspace."""
+    return [workspace[i, : b * pixels * k].view(b, pixels, k) for i in range(count)]
+
+
+def _forward_step(workspace, params, carry, coords, pixels):
+    """Composite one step -> ((b, F, P) sums of w * features, (b, P) log transmittance after it)."""
+    b, k = params.shape[:2]
+    alpha, log1m, log_t, weight = _views(workspace, b, pixels, k, 4)
+    _raw_alpha(alpha, params, coords).clamp_max_(ALPHA_MAX)
+    F.threshold_(alpha, _below(ALPHA_MIN, alpha.dtype), 0.0)
+    torch.neg(alpha, out=log1m).log1p_()
+    torch.cumsum(log1m, 2, out=log_t).add_(carry[:, :, None])    # log T after each Gaussian
+    F.threshold_(log_t, _below(math.log(T_MIN), log_t.dtype), -math.inf)  # stopped: -inf from here on
+    torch.sub(log_t, log1m, out=weight).exp_().mul_(alpha)    # w = T_before * alpha
+    return torch.bmm(params[..., _FEAT:].transpose(1, 2), weight.transpose(1, 2)), log_t[:, :, -1].clone()
+
+
+def _backward_step(workspace, params, carry, grad, behind, geo: _Geometry):
+    """Gradients of one step.
+
+    grad (b, F, P) = dL/d(per-pixel sums); behind (b, P) = sum of w_j (c_j . grad) over the
+    Gaussians of later steps. Returns ((b, k, 6 + F) dL/d table columns, (b, P) this step's sum).
+    """
+    b, k = params.shape[:2]
+    alpha, neg_alpha, log1m, log_t, trans, weight, dot = _views(workspace, b, geo.pixels, k, 7)
+    _raw_alpha(alpha, params, geo.coords)
+    F.threshold_(alpha, _below(ALPHA_MIN, alpha.dtype), 0.0)
+    F.threshold_(torch.neg(alpha, out=neg_alpha), -ALPHA_MAX, 0.0)  # -alpha where not clamped, else 0
+    alpha.clamp_max_(ALPHA_MAX)
+    torch.neg(alpha, out=log1m).log1p_()
+    torch.cumsum(log1m, 2, out=log_t).add_(carry[:, :, None])
+    F.threshold_(log_t, _below(math.log(T_MIN), log_t.dtype), -math.inf)
+    torch.sub(log_t, log1m, out=trans).exp_()              # T_i, 0 once the pixel has stopped
+    torch.mul(trans, alpha, out=weight)                   # w_i
+    features = params[..., _FEAT:]
+    d_features = torch.bmm(grad, weight).transpose(1, 2)  # dL/dc_i = sum_p w_i g
+    torch.bmm(grad.transpose(1, 2), features.transpose(1, 2), out=dot)  # c_i . g
+    suffix = torch.cumsum(weight.mul_(dot), 2, out=log_t)  # prefix sums of w_j (c_j . g) within the step
+    total = suffix[:, :, -1].clone()
+    torch.sub((behind + total)[:, :, None], suffix, out=suffix)  # sum over j > i (0 once stopped)
+    suffix.div_(torch.neg(alpha, out=log1m).add_(1.0))
+    d_alpha = dot.mul_(trans).sub_(suffix)               # dL/dalpha_i
+    neg_d_exponent = d_alpha.mul_(neg_alpha)             # -dL/d(log o - 0.5 d^T conic d)
+    moments = torch.matmul(geo.moment_basis, neg_d_exponent).neg_()  # (b, 6, k): sum_p dG [1 x y xx xy yy]
+    return torch.cat([_exponent_grads(moments, params), d_features], -1), total
+
+
+def _exponent_grads(moments, params):
+    """(b, k, 6) dL/d(u, v, a, b, c, log o) from the pixel moments of dL/dG, G = log o - 0.5 d^T conic d."""
+    m0, mx, my, mxx, mxy, myy = moments.unbind(1)
+    u, v, a, b, c = (params[..., i] for i in range(_LOGO))
+    sx, sy = mx - u * m0, my - v * m0                           # sum dG dx, sum dG dy (dx = x - u)
+    sxx = mxx - 2 * u * mx + u * u * m0
+    sxy = mxy - u * my - v * mx + u * v * m0
+    syy = myy - 2 * v * my + v * v * m0
+    return torch.stack([a * sx + b * sy, b * sx + c * sy, -0.5 * sxx, -sxy, -0.5 * syy, m0], -1)
+
+
+def _below(x: float, dtype) -> float:
+    """The largest value of ``dtype`` below x: ``threshold_(t, _below(x), v)`` keeps t >= x."""
+    return torch.nextafter(torch.tensor(x, dtype=dtype), torch.tensor(-math.inf, dtype=dtype)).item()
+
+
+def _composite_forward(table, bins: Bins, geo: _Geometry):
+    """Walk every block's list front to back -> ((blocks, F, P) sums, steps for the backward pass)."""
+    n_blocks, pixels = bins.blocks_x * bins.blocks_y, geo.pixels
+    carry = torch.zeros(n_blocks, pixels, dtype=table.dtype).masked_fill_(_outside_image(bins), -math.inf)
+    acc = torch.zeros(n_blocks, table.shape[1] - _FEAT, pixels, dtype=table.dtype)
+    workspace = torch.empty(4, geo.capacity, dtype=table.dtype)
+    done_count = torch.zeros(n_blocks, dtype=torch.long)
+    active = torch.nonzero(bins.counts > 0).flatten()
+    steps = []
+    while active.numel():
+        k = geo.chunk_length(active.numel(), int((bins.counts[active] - done_count[active]).max()))
+        for blocks in active.split(max(1, geo.capacity // (pixels * k))):
+            gids, params = _gather(table, bins, geo, blocks, done_count, k)
+            carry_in = carry.index_select(0, blocks)
+            out, carry_out = _forward_step(workspace, params, carry_in, geo.coords, pixels)
+            carry.index_copy_(0, blocks, carry_out)
+            acc.index_add_(0, blocks, out)
+            steps.append(_Step(blocks, gids, params, carry_in))
+        done_count[active] += k
+        finished = torch.isneginf(carry[active]).all(1) | (done_count[active] >= bins.counts[active])
+        active = active[~finished]
+    return acc, steps
+
+
+def _composite_backward(grad_blocks, steps, n_gaussians: int, geo: _Geometry):
+    """Replay the steps back to front -> (N, 6 + F) dL/d table columns."""
+    dtype = grad_blocks.dtype
+    grads = torch.zeros(n_gaussians, _FEAT + grad_blocks.shape[1], dtype=dtype)
+    behind = torch.zeros(grad_blocks.shape[0], grad_blocks.shape[2], dtype=dtype)
+    workspace = torch.empty(7, geo.capacity, dtype=dtype)
+    for step in reversed(steps):
+        g = grad_blocks.index_select(0, step.blocks)
+        d_table, total = _backward_step(workspace, step.params, step.carry_in, g, behind.index_select(0, step.blocks),
+                                        geo)
+        behind.index_add_(0, step.blocks, total)
+        grads.index_add_(0, step.gids.flatten(), d_table.flatten(0, 1))
+    return grads
+
+
+class _Composite(torch.autograd.Function):
+    """(means2d, conics, log opacities, colors, depths, bins) -> (H, W, D + 2) sums [w c, w z, w]."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, log_opacities, colors, depths, bins: Bins):
+        table = torch.cat([means2d, conics, log_opacities[:, None], colors, depths[:, None],
+                           torch.ones_like(depths)[:, None]], -1).contiguous()
+        geo = _Geometry(bins, table.dtype)
+        acc, steps = _composite_forward(table, bins, geo)
+        ctx.bins, ctx.geo, ctx.steps = bins, geo, steps
+        ctx.n_gaussians, ctx.n_colors = means2d.shape[0], colors.shape[-1]
+        return _blocks_to_image(acc, bins)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad):
+        d = ctx.n_colors
+        grads = _composite_backward(_image_to_blocks(grad, ctx.bins), ctx.steps, ctx.n_gaussians, ctx.geo)
+        return (grads[:, _U:_V + 1], grads[:, _A:_C + 1], grads[:, _LOGO], grads[:, _FEAT:_FEAT + d],
+                grads[:, _FEAT + d], None)
+
+
+# ---------------------------------------------------------------------------------------------
+# Reference: brute force, autograd only (used by the tests)
+
+
+def rasterize_reference(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int,
+                        background=None, near_plane: float = 0.01, far_plane: float = 1e10, tile_size: int = 16):
+    """``rasterize`` written as directly as possible, for checking it: same conventions and constants.
+
+    The projection is re-derived per Gaussian (3D covariance, camera covariance, Jacobian, 2x2
+    inverse) in the input dtype; then every pixel visits every Gaussian in depth order with the
+    sequential transmittance update of the CUDA rasterizers. O(N H W) memory and a Python loop over
+    the Gaussians: small scenes only. Use float64 for tight comparisons.
+    """
+    if viewmat.dim() == 3:
+        return _rasterize_cameras(rasterize_reference, means, quats, scales, opacities, colors, viewmat, K, width,
+                                  height, background, near_plane=near_plane, far_plane=far_plane,
+                                  tile_size=tile_size)
+    mean2d, conic, z, radius, valid = _reference_projection(means, quats, scales, opacities, viewmat, K, width,
+                                                            height, near_plane, far_plane)
+    pixels = _reference_pixel_centres(width, height, means.dtype)                       # (P, 2)
+    d = pixels[:, None, :] - mean2d[None, :, :]                                          # (P, N, 2)
+    power = -0.5 * torch.einsum("pni,nij,pnj->pn", d, conic, d)
+    alpha = (opacities * torch.exp(power)).clamp(max=ALPHA_MAX)
+    covered = _reference_tile_cover(mean2d.detach(), radius, width, height, tile_size) & valid
+    alpha = torch.where(covered & (alpha >= ALPHA_MIN), alpha, torch.zeros_like(alpha))
+    trans = torch.ones(pixels.shape[0], dtype=means.dtype)
+    stopped = torch.zeros(pixels.shape[0], dtype=torch.bool)
+    rgb_sum = torch.zeros(pixels.shape[0], colors.shape[-1], dtype=means.dtype)
+    depth_sum = torch.zeros(pixels.shape[0], dtype=means.dtype)
+    alpha_sum = torch.zeros(pixels.shape[0], dtype=means.dtype)
+    for i in torch.argsort(z.detach(), stable=True).tolist():
+        next_trans = trans * (1.0 - alpha[:, i])
+        stopped = stopped | (next_trans < T_MIN)
+        w = torch.where(stopped, torch.zeros_like(trans), alpha[:, i] * trans)
+        rgb_sum = rgb_sum + w[:, None] * colors[i]
+        depth_sum = depth_sum + w * z[i]
+        alpha_sum = alpha_sum + w
+        trans = torch.where(stopped, trans, next_trans)
+    acc = torch.cat([rgb_sum, depth_sum[:, None], alpha_sum[:, None]], -1).reshape(height, width, -1)
+    return _finish(acc, background)
+
+
+def _reference_projection(means, quats, scales, opacities, viewmat, K, width, height, near_plane, far_plane):
+    """-> means2d (N, 2), conic matrices (N, 2, 2), depths (N,), radii (N,), valid (N,)."""
+    dtype = means.dtype
+    rot_w, trans_w = viewmat[:3, :3].to(dtype), viewmat[:3, 3].to(dtype)
+    cam = means @ rot_w.T + trans_w
+    z = cam[:, 2]
+    in_depth = (z >= near_plane) & (z <= far_plane) & (z > 0)
+    z_safe = torch.where(in_depth, z, torch.ones_like(z))
+    norm = quats.norm(dim=-1, keepdim=True)
+    identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=dtype)
+    q = torch.where(norm > 0, quats / norm.clamp_min(1e-12), identity)
+    w, v = q[:, :1, None], q[:, 1:]
+    cross = torch.zeros(len(q), 3, 3, dtype=dtype)
+    cross[:, 0, 1], cross[:, 0, 2], cross[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    cross = cross - cross.transpose(1, 2)
+    eye = torch.eye(3, dtype=dtype)
+    rot = (w * w - (v * v).sum(-1)[:, None, None]) * eye + 2 * v[:, :, None] * v[:, None, :] + 2 * w * cross
+    cov_world = rot @ torch.diag_embed(scales * scales) @ rot.transpose(1, 2)
+    cov_cam = rot_w @ cov_world @ rot_w.T
+    fx, fy, cx, cy = (K[i, j].to(dtype) for i, j in ((0, 0), (1, 1), (0, 2), (1, 2)))
+    lim_x, lim_y = 0.3 * 0.5 * width / fx, 0.3 * 0.5 * height / fy
+    xz = torch.clamp(cam[:, 0] / z_safe, -cx / fx - lim_x, (width - cx) / fx + lim_x)
+    yz = torch.clamp(cam[:, 1] / z_safe, -cy / fy - lim_y, (height - cy) / fy + lim_y)
+    jac = torch.zeros(len(q), 2, 3, dtype=dtype)
+    jac[:, 0, 0], jac[:, 0, 2] = fx / z_safe, -fx * xz / z_safe
+    jac[:, 1, 1], jac[:, 1, 2] = fy / z_safe, -fy * yz / z_safe
+    cov2d = jac @ cov_cam @ jac.transpose(1, 2) + EPS2D * torch.eye(2, dtype=dtype)
+    det = torch.linalg.det(cov2d)
+    valid = in_depth & (det > 0) & (opacities >= ALPHA_MIN)
+    conic = torch.linalg.inv(torch.where(valid[:, None, None], cov2d, torch.eye(2, dtype=dtype)))
+    mid = 0.5 * (cov2d[:, 0, 0] + cov2d[:, 1, 1]).detach()
+    lam_max = mid + torch.sqrt((mid * mid - det.detach()).clamp_min(LAMBDA_FLOOR))
+    radius = torch.ceil(EXTENT_SIGMAS * torch.sqrt(lam_max))
+    mean2d = torch.stack([fx * cam[:, 0] / z_safe + cx, fy * cam[:, 1] / z_safe + cy], -1)
+    return mean2d, conic, z, radius, valid
+
+
+def _reference_pixel_centres(width, height, dtype):
+    rows, cols = torch.meshgrid(torch.arange(height, dtype=dtype), torch.arange(width, dtype=dtype), indexing="ij")
+    return torch.stack([cols, rows], -1).reshape(-1, 2) + 0.5
+
+
+def _reference_tile_cover(mean2d, radius, width, height, tile_size):
+    """(P, N) bool: the pixel's tile lies in the Gaussian's tile box."""
+    rows, cols = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
+    tile_x, tile_y = (cols.reshape(-1, 1) // tile_size), (rows.reshape(-1, 1) // tile_size)
+    u, v, r = mean2d[:, 0].double(), mean2d[:, 1].double(), radius.double()
+    return ((tile_x >= torch.floor((u - r) / tile_size)) & (tile_x < torch.ceil((u + r) / tile_size))
+            & (tile_y >= torch.floor((v - r) / tile_size)) & (tile_y < torch.ceil((v + r) / tile_size)))

@@ -1,0 +1,441 @@
+"""Automatic pre-flags: each detector on synthetic heads with one injected defect, the report's shape
+and order, determinism, that truth/ is never read, and the atomic write of preflags.json.
+
+The detector tests use analytic heads (an ellipsoid with neck, nose, eyes, lips and hair, ray-cast in
+numpy) so they run in milliseconds; one end-to-end test renders a tiny procedural dataset.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy import ndimage as ndi
+
+from datagen.pipeline import JobSpec, run_sample, software_info
+from datagen.shards import FORMAT as DATASET_FORMAT
+from datagen.shards import ShardWriter, SubjectSample, encode_subject, shard_name, subject_id
+from labeling_tool import preflags
+
+RES = 48
+VIEWS = 16
+HALF = 0.32          # half the image width in world units (about the procedural framing)
+CAMERA = 2.7
+
+
+# ----------------------------------------------------------------------------------------------
+# Analytic heads
+
+def _ellipsoid_hit(o, d, c, r):
+    """Nearest t >= 0 where rays o + t d meet the ellipsoid (centre c, radii r); inf where they miss."""
+    oc = (o - c) / r
+    dd = d / r
+    a = (dd * dd).sum(-1)
+    b = 2 * (oc * dd).sum(-1)
+    cc = (oc * oc).sum(-1) - 1
+    disc = b * b - 4 * a * cc
+    t = (-b - np.sqrt(np.maximum(disc, 0))) / (2 * a)
+    return np.where((disc >= 0) & (t > 0), t, np.inf)
+
+
+def _cylinder_hit(o, d, c, radius, y0, y1):
+    """Vertical cylinder (axis y through c) between heights y0 and y1."""
+    ox, oz = o[..., 0] - c[0], o[..., 2] - c[2]
+    dx, dz = d[..., 0], d[..., 2]
+    a = dx * dx + dz * dz + 1e-12
+    b = 2 * (ox * dx + oz * dz)
+    cc = ox * ox + oz * oz - radius * radius
+    disc = b * b - 4 * a * cc
+    t = (-b - np.sqrt(np.maximum(disc, 0))) / (2 * a)
+    y = o[..., 1] + t * d[..., 1]
+    return np.where((disc >= 0) & (t > 0) & (y >= y0) & (y <= y1), t, np.inf)
+
+
+def make_head(rng, key, views=VIEWS, protocol="360", defect=None):
+    """A SubjectSample of an analytic head; defect in (None, 'janus', 'floaters', 'hole', 'see_through')."""
+    radii = np.array([0.19, 0.23, 0.22]) * rng.uniform(0.95, 1.05, 3)
+    tone = rng.uniform(0.45, 1.0)
+    skin = (np.array([0.97, 0.80, 0.69]) * (1 - tone) + np.array([0.33, 0.20, 0.13]) * tone)
+    skin = skin * rng.uniform(0.98, 1.02, 3)
+    hair = np.array([[0.05, 0.04, 0.04], [0.17, 0.10, 0.06], [0.36, 0.23, 0.13], [0.50, 0.20, 0.09],
+                     [0.82, 0.66, 0.40]][rng.integers(5)]) * rng.uniform(0.9, 1.1)
+    light = np.array([rng.uniform(-0.4, 0.4), 0.6, 0.8])
+    light /= np.linalg.norm(light)
+    hairline = rng.uniform(0.03, 0.1)
+    hair_drop = rng.uniform(0.1, 0.3)          # how far the hair comes down at the back
+    strands = rng.uniform(40, 120)
+    eye_y = rng.uniform(0.02, 0.04)
+    if protocol == "360":
+        yaw = np.concatenate([np.arange(8) * 45.0, rng.uniform(0, 360, views - 8)])
+        pitch = np.concatenate([np.zeros(8), rng.uniform(-20, 20, views - 8)])
+    else:
+        yaw = rng.uniform(-36, 36, views)
+        pitch = rng.uniform(-20, 20, views)
+    nose_c = np.array([0.0, -0.02, radii[2] + 0.005])
+    blobs = []
+    if defect == "floaters":
+        for _ in range(3):
+            v = rng.normal(size=3)
+            v[1] = abs(v[1])
+            blobs.append((v / np.linalg.norm(v) * 0.36, 0.035, rng.uniform(0.2, 0.9, 3)))
+    u = (np.arange(RES) + 0.5) / RES * 2 - 1
+    uu, vv = np.meshgrid(u * HALF, -u * HALF)
+    rgb, alpha, depth, records = [], [], [], []
+    for yw, pt in zip(yaw, pitch):
+        a, e = math.radians(yw), math.radians(pt)
+        fwd = -np.array([math.cos(e) * math.sin(a), math.sin(e), math.cos(e) * math.cos(a)])
+        right = np.array([math.cos(a), 0.0, -math.sin(a)])
+        up = np.cross(right, fwd)
+        o = uu[..., None] * right + vv[..., None] * up - CAMERA * fwd
+        d = np.broadcast_to(fwd, o.shape)
+        hits = [_ellipsoid_hit(o, d, np.zeros(3), radii),
+                _cylinder_hit(o, d, np.array([0.0, 0, -0.02]), 0.09, -0.5, -0.1),
+                _ellipsoid_hit(o, d, nose_c, np.array([0.018, 0.03, 0.03]))]
+        if defect == "janus":
+            hits.append(_ellipsoid_hit(o, d, nose_c * np.array([1, 1, -1]), np.array([0.018, 0.03, 0.03])))
+        for c, r, _ in blobs:
+            hits.append(_ellipsoid_hit(o, d, c, np.array([r, r, r])))
+        t = np.min(np.stack(hits), 0)
+        which = np.argmin(np.stack(hits), 0)
+        m = np.isfinite(t)
+        p = o + np.where(m, t, 0)[..., None] * d
+        n = p / radii ** 2
+        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+        col = np.broadcast_to(skin, p.shape).copy()
+        x, y, z = p[..., 0], p[..., 1], p[..., 2]
+        face_side = [1.0, -1.0] if defect == "janus" else [1.0]
+        in_hair = (y > hairline - hair_drop * (z < 0)) & (which == 0)
+        if defect == "janus":
+            in_hair &= ~((z < 0) & (np.hypot(x / 0.12, (y + 0.01) / 0.14) < 1.0))
+        col[in_hair] = hair * (0.8 + 0.2 * np.sin(strands * np.arctan2(x, z) + 8 * y))[in_hair][:, None]
+        for side in face_side:
+            zs = side * z
+            for ex in (-0.07, 0.07):
+                eye = (np.hypot(x - ex, y - eye_y) < 0.022) & (zs > 0.1)
+                col[eye] = [0.95, 0.95, 0.95]
+                col[eye & (np.hypot(x - ex, y - eye_y) < 0.011)] = [0.1, 0.08, 0.06]
+            col[(np.abs(x) < 0.04) & (np.abs(y + 0.11) < 0.012) & (zs > 0.1)] = [0.7, 0.2, 0.2]
+        for i, (_, _, bc) in enumerate(blobs):
+            col[which == 3 + i] = bc
+        shade = 0.4 + 0.6 * np.clip((n * light).sum(-1), 0, 1)
+        col = np.clip(col * shade[..., None], 0, 1)
+        dep = np.where(m, CAMERA - (p * -fwd).sum(-1) + 0.0, 0.0)
+        if defect == "hole":
+            cdir = np.array([0.0, 0.55, -0.84])
+            centre = cdir * radii * 1.0
+            vis = (cdir * -fwd).sum()
+            if vis > 0.2:
+                ci = (centre * right).sum() / HALF, (centre * up).sum() / HALF
+                r2 = ((uu / HALF - ci[0]) ** 2 + (vv / HALF - ci[1]) ** 2) / 0.22 ** 2
+                bowl = m & (r2 < 1) & (which == 0)
+                dep = np.where(bowl, dep + 0.06 * vis * (1 - r2), dep)
+                col[bowl] *= 0.45
+        a8 = m.astype(np.float64)
+        if defect == "see_through" and abs(yw - 90) < 1:
+            a8[(np.hypot(uu - 0.0, vv - 0.05) < 0.04)] = 0.0
+        bg = 1.0
+        img = col * a8[..., None] + bg * (1 - a8[..., None])
+        rgb.append(np.clip(np.rint(img * 255), 0, 255).astype(np.uint8))
+        alpha.append(np.clip(np.rint(a8 * 255), 0, 255).astype(np.uint8))
+        depth.append(np.where(a8 > 0, dep, 0.0).astype(np.float32))
+        records.append({"yaw_deg": float(yw), "pitch_deg": float(pt), "radius": CAMERA, "fov_deg": 18.83})
+    meta = {"subject_id": key, "views": records, "protocol": protocol, "resolution": RES}
+    return SubjectSample(key, meta, rgb, alpha, depth, {})
+
+
+def washed(s: SubjectSample, strength=0.7) -> SubjectSample:
+    rgb = []
+    for c, a in zip(s.rgb, s.alpha):
+        x = c.astype(np.float64) / 255
+        grey = x.mean(-1, keepdims=True)
+        y = (1 - strength) * x + strength * (0.25 * grey + 0.75 * 0.93)
+        m = (a > 0)[..., None]
+        rgb.append(np.clip(np.rint(np.where(m, y, x) * 255), 0, 255).astype(np.uint8))
+    return SubjectSample(s.key, s.metadata, rgb, s.alpha, s.depth, {})
+
+
+def blurred(s: SubjectSample, sigma=1.5) -> SubjectSample:
+    rgb = [np.clip(ndi.gaussian_filter(c.astype(np.float64), (sigma, sigma, 0)), 0, 255).astype(np.uint8)
+           for c in s.rgb]
+    return SubjectSample(s.key, s.metadata, rgb, s.alpha, s.depth, {})
+
+
+def emptied(s: SubjectSample, views=(3, 9)) -> SubjectSample:
+    alpha = [np.zeros_like(a) if i in views else a for i, a in enumerate(s.alpha)]
+    rgb = [np.full_like(c, 255) if i in views else c for i, c in enumerate(s.rgb)]
+    depth = [np.zeros_like(d) if i in views else d for i, d in enumerate(s.depth)]
+    return SubjectSample(s.key, s.metadata, rgb, alpha, depth, {})
+
+
+def far_away(s: SubjectSample, factor=1.6) -> SubjectSample:
+    return SubjectSample(s.key, s.metadata, s.rgb, s.alpha, [d * factor for d in s.depth], {})
+
+
+def renamed(s: SubjectSample, key: str) -> SubjectSample:
+    return SubjectSample(key, dict(s.metadata, subject_id=key), s.rgb, s.alpha, s.depth, {})
+
+
+def score_samples(samples):
+    feats = [("shard-000000", preflags.subject_features(s)) for s in samples]
+    report = preflags.score_features({"index_sha256": "0" * 64, "features": feats, "seconds": 1.0})
+    return {s["subject"]: s for s in report["subjects"]}, report
+
+
+@pytest.fixture(scope="module")
+def clean_heads():
+    rng = np.random.default_rng(11)
+    return [make_head(rng, subject_id(i)) for i in range(24)]
+
+
+def _check(clean_heads, bad, detector):
+    by_key, _ = score_samples(clean_heads + [bad])
+    got = by_key[bad.key]
+    assert got["detectors"][detector]["score"] >= 0.5, got["detectors"][detector]
+    assert detector in got["flags"]
+    for s in clean_heads:
+        d = by_key[s.key]["detectors"][detector]
+        assert d["score"] < 0.5, (s.key, d)
+    return got
+
+
+# ----------------------------------------------------------------------------------------------
+# Each detector flags its synthetic defect and not the clean heads
+
+def test_clean_heads_are_not_flagged(clean_heads):
+    by_key, report = score_samples(clean_heads)
+    assert all(not s["flags"] for s in by_key.values()), [(k, s["flags"]) for k, s in by_key.items() if s["flags"]]
+    assert report["summary"]["flagged"] == 0
+
+
+def test_janus(clean_heads):
+    bad = make_head(np.random.default_rng(101), "subj99999990", defect="janus")
+    got = _check(clean_heads, bad, "janus")
+    assert "back view v04" in got["detectors"]["janus"]["why"]
+
+
+def test_floaters(clean_heads):
+    bad = make_head(np.random.default_rng(102), "subj99999991", defect="floaters")
+    got = _check(clean_heads, bad, "floaters")
+    assert "detached" in got["detectors"]["floaters"]["why"]
+
+
+def test_crater(clean_heads):
+    bad = make_head(np.random.default_rng(103), "subj99999992", defect="hole")
+    got = _check(clean_heads, bad, "holes")
+    assert "depression" in got["detectors"]["holes"]["why"]
+
+
+def test_see_through_hole(clean_heads):
+    bad = make_head(np.random.default_rng(104), "subj99999993", defect="see_through")
+    got = _check(clean_heads, bad, "holes")
+    assert "see-through" in got["detectors"]["holes"]["why"]
+
+
+def test_washed_out(clean_heads):
+    bad = washed(make_head(np.random.default_rng(105), "subj99999994"))
+    _check(clean_heads, bad, "washed_out")
+
+
+def test_blur(clean_heads):
+    bad = blurred(make_head(np.random.default_rng(106), "subj99999995"))
+    _check(clean_heads, bad, "blur")
+
+
+def test_empty_views(clean_heads):
+    bad = emptied(make_head(np.random.default_rng(107), "subj99999996"))
+    got = _check(clean_heads, bad, "empty")
+    assert "2 of 16 views empty (v03, v09)" in got["detectors"]["empty"]["why"]
+
+
+def test_implausible_depth(clean_heads):
+    bad = far_away(make_head(np.random.default_rng(108), "subj99999997"))
+    got = _check(clean_heads, bad, "implausible")
+    assert "median depth" in got["detectors"]["implausible"]["why"]
+
+
+def test_duplicate(clean_heads):
+    copy = renamed(clean_heads[5], "subj99999998")
+    by_key, _ = score_samples(clean_heads + [copy])
+    for key in (copy.key, clean_heads[5].key):
+        assert "duplicate" in by_key[key]["flags"]
+    assert clean_heads[5].key in by_key[copy.key]["detectors"]["duplicate"]["why"]
+    others = [k for k in by_key if k not in (copy.key, clean_heads[5].key)]
+    assert all("duplicate" not in by_key[k]["flags"] for k in others)
+
+
+def test_janus_not_applicable_without_back_views():
+    rng = np.random.default_rng(5)
+    heads = [make_head(rng, subject_id(i), protocol="frontal") for i in range(6)]
+    by_key, _ = score_samples(heads)
+    for s in by_key.values():
+        assert s["detectors"]["janus"]["score"] == 0.0
+        assert "not applicable" in s["detectors"]["janus"]["why"]
+
+
+def test_undecodable_subject_is_flagged_not_dropped(clean_heads):
+    feats = [("shard-000000", preflags.subject_features(s)) for s in clean_heads[:4]]
+    error = "x.tar: subject subj00000099 lacks field 'v00.png'"
+    feats.append(("shard-000000", preflags._failed_record("subj00000099", error)))
+    report = preflags.score_features({"index_sha256": "0" * 64, "features": feats, "seconds": 1.0})
+    assert report["subjects"][0]["subject"] == "subj00000099"
+    assert report["subjects"][0]["flags"] == ["empty"]
+    assert len(report["subjects"]) == 5
+
+
+def test_duplicates_blocked_matches_dense():
+    rng = np.random.default_rng(0)
+    thumbs = [rng.normal(size=16).astype(np.float32) for _ in range(37)]
+    thumbs[30] = thumbs[3] + 0.01
+    thumbs[7] = None
+    small = preflags._duplicates(thumbs, preflags.Params(duplicate_block=5))
+    big = preflags._duplicates(thumbs, preflags.Params(duplicate_block=4096))
+    np.testing.assert_allclose(small[0], big[0], rtol=1e-5)
+    assert list(small[1]) == list(big[1])
+    assert small[1][30] == 3 and small[1][3] == 30 and small[1][7] == -1
+
+
+# ----------------------------------------------------------------------------------------------
+# Whole datasets on disk
+
+def write_dataset(root: Path, samples, shard_size=8, truth=None):
+    """A dataset folder in the panolam-heads layout from in-memory samples (hidden truth included)."""
+    root.mkdir(parents=True)
+    shards = []
+    for i in range(0, len(samples), shard_size):
+        w = ShardWriter(root, i // shard_size)
+        keys = []
+        for s in samples[i:i + shard_size]:
+            meta = dict(s.metadata)
+            members = encode_subject(meta, np.stack(s.rgb).astype(np.float32) / 255,
+                                     np.stack(s.alpha).astype(np.float32) / 255, np.stack(s.depth))
+            w.add_subject(s.key, members, (truth or {}).get(s.key, {"defects": []}))
+            keys.append(s.key)
+        w.commit()
+        shards.append({"name": shard_name(i // shard_size), "subjects": keys})
+    index = {"format": DATASET_FORMAT, "num_subjects": len(samples), "shards": shards, "settings": {}}
+    (root / "index.json").write_text(json.dumps(index, indent=1, sort_keys=True) + "\n")
+    return root
+
+
+@pytest.fixture(scope="module")
+def synthetic_dataset(tmp_path_factory, clean_heads):
+    rng = np.random.default_rng(3)
+    bad = [make_head(rng, "subj00000100", defect="floaters"), washed(make_head(rng, "subj00000101")),
+           make_head(rng, "subj00000102", defect="janus")]
+    truth = {"subj00000100": {"defects": [{"type": "floaters"}]}, "subj00000101": {"defects": [{"type": "washed_out"}]},
+             "subj00000102": {"defects": [{"type": "janus"}]}}
+    root = tmp_path_factory.mktemp("preflags") / "ds"
+    return write_dataset(root, clean_heads[:16] + bad, shard_size=7, truth=truth)
+
+
+def strip_timing(report):
+    return {k: v for k, v in report.items() if k != "timing"}
+
+
+def test_report_shape_and_order(synthetic_dataset):
+    report = preflags.score_dataset(synthetic_dataset)
+    assert report["format"] == "panolam-preflags/1"
+    import hashlib
+    assert report["dataset_index_sha256"] == hashlib.sha256((synthetic_dataset / "index.json").read_bytes()).hexdigest()
+    assert set(report["detectors"]) == set(preflags.DETECTOR_NAMES)
+    assert all(d["threshold"] == 0.5 and d["description"] for d in report["detectors"].values())
+    subjects = report["subjects"]
+    assert len(subjects) == 19
+    scores = [s["score"] for s in subjects]
+    assert scores == sorted(scores, reverse=True)
+    for s in subjects:
+        assert set(s["detectors"]) == set(preflags.DETECTOR_NAMES)
+        assert s["shard"].startswith("shard-")
+        for d in s["detectors"].values():
+            assert 0.0 <= d["score"] <= 1.0 and isinstance(d["why"], str) and d["why"]
+        assert s["score"] == max(d["score"] for d in s["detectors"].values())
+        assert s["flags"] == [n for n in preflags.DETECTOR_NAMES if s["detectors"][n]["score"] >= 0.5]
+    worst = {s["subject"] for s in subjects[:3]}
+    assert worst == {"subj00000100", "subj00000101", "subj00000102"}
+    flags = {s["subject"]: s["flags"] for s in subjects}
+    assert "floaters" in flags["subj00000100"]
+    assert "washed_out" in flags["subj00000101"]
+    assert "janus" in flags["subj00000102"]
+    assert report["timing"]["subjects_per_second"] > 0
+
+
+def test_deterministic_and_workers_agree(synthetic_dataset):
+    a = preflags.score_dataset(synthetic_dataset)
+    b = preflags.score_dataset(synthetic_dataset)
+    c = preflags.score_dataset(synthetic_dataset, workers=2)
+    assert strip_timing(a) == strip_timing(b) == strip_timing(c)
+
+
+def test_truth_folder_is_never_read(synthetic_dataset, tmp_path, monkeypatch):
+    before = preflags.score_dataset(synthetic_dataset)
+    copy = tmp_path / "copy"
+    shutil.copytree(synthetic_dataset, copy, ignore=shutil.ignore_patterns("truth"))
+    assert not (copy / "truth").exists()
+    opened = []
+    real_open = open
+
+    def spy(file, *args, **kwargs):
+        opened.append(str(file))
+        return real_open(file, *args, **kwargs)
+
+    monkeypatch.setattr("builtins.open", spy)
+    after = preflags.score_dataset(synthetic_dataset)
+    monkeypatch.undo()
+    assert not [p for p in opened if "truth" in Path(p).parts]
+    assert strip_timing(after) == strip_timing(before)
+    assert strip_timing(preflags.score_dataset(copy)) == strip_timing(before)
+
+
+def test_fast_reader_matches_tarfile(synthetic_dataset):
+    path = synthetic_dataset / "shard-000000.tar"
+    want = lambda field, fields: True  # noqa: E731
+    fast = list(preflags._subject_groups_fast(path, want))
+    slow = list(preflags._subject_groups_tarfile(path, want))
+    assert [k for k, _ in fast] == [k for k, _ in slow]
+    for (_, a), (_, b) in zip(fast, slow):
+        assert a == b
+
+
+def test_write_read_atomic(synthetic_dataset, tmp_path, monkeypatch):
+    root = tmp_path / "ds"
+    shutil.copytree(synthetic_dataset, root)
+    report = preflags.score_dataset(root)
+    path = preflags.write_preflags(root, report)
+    assert path == root / "preflags.json"
+    assert preflags.read_preflags(root) == json.loads(json.dumps(report))
+    assert not preflags.is_stale(root, report)
+    assert not [p.name for p in root.iterdir() if ".tmp" in p.name]
+    old = path.read_bytes()
+
+    def boom(src, dst):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(os, "replace", boom)
+    changed = dict(report, subjects=report["subjects"][:1])
+    with pytest.raises(OSError):
+        preflags.write_preflags(root, changed)
+    monkeypatch.undo()
+    assert path.read_bytes() == old                       # the old file is untouched
+    assert not [p.name for p in root.iterdir() if ".tmp" in p.name]
+    other = tmp_path / "elsewhere.json"
+    preflags.write_preflags(root, report, path=other)
+    assert preflags.read_preflags(root, path=other)["subjects"] == preflags.read_preflags(root)["subjects"]
+    (root / "index.json").write_text((root / "index.json").read_text() + " ")
+    assert preflags.is_stale(root, report)
+
+
+def test_procedural_dataset_end_to_end(tmp_path):
+    """A tiny rendered dataset: scores in range, identical with and without truth/."""
+    root = tmp_path / "proc"
+    run_sample(JobSpec(out=str(root), gan="procedural", generator_options={"grid_resolution": 32, "defect_rate": 0.5},
+                       protocol="360", subjects=4, resolution=32, views=10, seed=3, shard_size=2,
+                       software=software_info()), progress=False)
+    report = preflags.score_dataset(root, workers=2)
+    assert len(report["subjects"]) == 4
+    assert all(0 <= s["score"] <= 1 for s in report["subjects"])
+    shutil.rmtree(root / "truth")
+    assert strip_timing(preflags.score_dataset(root)) == strip_timing(report)
