@@ -278,8 +278,11 @@ class SubjectSample:
     arrays: dict
 
 
-def iter_tar_samples(path):
-    """Group a shard's members into per-subject dicts {field: bytes}, in order; errors name the file."""
+def iter_tar_samples(path, wanted=None):
+    """Group a shard's members into per-subject dicts {field: bytes}, in order; errors name the file.
+
+    ``wanted(field, fields_so_far)`` may skip fields (their bytes are not read).
+    """
     path = Path(path)
     try:
         with tarfile.open(path, "r:") as tar:
@@ -292,7 +295,8 @@ def iter_tar_samples(path):
                     yield current, fields
                     fields = {}
                 current = key
-                fields[field] = tar.extractfile(member).read()
+                if wanted is None or wanted(field, fields):
+                    fields[field] = tar.extractfile(member).read()
             if current is not None:
                 yield current, fields
     except (tarfile.TarError, EOFError, OSError) as e:

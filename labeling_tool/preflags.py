@@ -45,7 +45,6 @@ import math
 import multiprocessing as mp
 import os
 import sys
-import tarfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -54,7 +53,7 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from datagen.errors import DatasetError
-from datagen.shards import INDEX_NAME, SubjectSample, decode_exr, decode_png, read_index, view_name
+from datagen.shards import INDEX_NAME, SubjectSample, decode_exr, decode_png, iter_tar_samples, read_index, view_name
 
 FORMAT = "panolam-preflags/1"
 PREFLAGS_NAME = "preflags.json"
@@ -217,7 +216,7 @@ def _subject_groups(path: Path, wanted):
     try:
         yield from _subject_groups_fast(path, wanted)
     except _NotPlainUstar:
-        yield from _subject_groups_tarfile(path, wanted)
+        yield from iter_tar_samples(path, wanted)
 
 
 def _subject_groups_fast(path: Path, wanted):
@@ -266,26 +265,6 @@ def _subject_groups_fast(path: Path, wanted):
                 f.seek(padded, 1)
     if current is not None:
         yield current, fields
-
-
-def _subject_groups_tarfile(path: Path, wanted):
-    try:
-        with tarfile.open(path, "r:") as tar:
-            current, fields = None, {}
-            for member in tar:
-                if not member.isfile():
-                    continue
-                key, _, field = member.name.partition(".")
-                if key != current and current is not None:
-                    yield current, fields
-                    fields = {}
-                current = key
-                if wanted(field, fields):
-                    fields[field] = tar.extractfile(member).read()
-            if current is not None:
-                yield current, fields
-    except (tarfile.TarError, EOFError, OSError) as e:
-        raise DatasetError(f"{path}: corrupt or truncated shard ({e})") from None
 
 
 KEEP = "__keep__"  # per-subject set of view indices whose colour and depth are read

@@ -17,7 +17,7 @@ import pytest
 from scipy import ndimage as ndi
 
 from datagen.pipeline import JobSpec, run_sample, software_info
-from datagen.shards import FORMAT as DATASET_FORMAT
+from datagen.shards import FORMAT as DATASET_FORMAT, iter_tar_samples
 from datagen.shards import ShardWriter, SubjectSample, encode_subject, shard_name, subject_id
 from labeling_tool import preflags
 
@@ -394,7 +394,7 @@ def test_fast_reader_matches_tarfile(synthetic_dataset):
     path = synthetic_dataset / "shard-000000.tar"
     want = lambda field, fields: True  # noqa: E731
     fast = list(preflags._subject_groups_fast(path, want))
-    slow = list(preflags._subject_groups_tarfile(path, want))
+    slow = list(iter_tar_samples(path, want))
     assert [k for k, _ in fast] == [k for k, _ in slow]
     for (_, a), (_, b) in zip(fast, slow):
         assert a == b
