@@ -1,17 +1,10 @@
 """The ``datagen`` command line: sample, verify, preview, info."""
 from __future__ import annotations
 
-import argparse
-import errno
 import json
 import sys
 
-from .errors import UserError
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):  # one line, non-zero exit
-        self.exit(2, f"{self.prog}: error: {message}\n")
+from .errors import OneLineParser, UserError, run_command
 
 
 def parse_background(text: str, allow_own: bool):
@@ -31,9 +24,9 @@ def parse_background(text: str, allow_own: bool):
     return rgb
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="datagen", description="Build multiview head datasets from head generators.")
-    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+def build_parser() -> OneLineParser:
+    p = OneLineParser(prog="datagen", description="Build multiview head datasets from head generators.")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
 
     s = sub.add_parser("sample", help="render subjects into WebDataset shards")
     s.add_argument("--gan", default="procedural", help="generator: procedural (default), eg3d, panohead, spherehead")
@@ -153,20 +146,7 @@ COMMANDS = {"sample": _sample, "verify": _verify, "preview": _preview, "info": _
 
 
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
-    try:
-        return COMMANDS[args.command](args)
-    except UserError as e:
-        print(f"datagen {args.command}: error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"datagen {args.command}: interrupted; rerun with --resume to continue", file=sys.stderr)
-        return 130
-    except OSError as e:
-        if e.errno == errno.ENOSPC:
-            print(f"datagen {args.command}: error: disk full ({e.filename or ''})", file=sys.stderr)
-            return 2
-        raise
+    return run_command("datagen", COMMANDS, build_parser().parse_args(argv), "rerun with --resume to continue")
 
 
 if __name__ == "__main__":

@@ -1,4 +1,9 @@
-"""User-facing errors: the command line prints them as one line and exits non-zero."""
+"""User-facing errors: the command lines print them as one line and exit non-zero."""
+from __future__ import annotations
+
+import argparse
+import errno
+import sys
 
 
 class UserError(Exception):
@@ -7,3 +12,27 @@ class UserError(Exception):
 
 class DatasetError(UserError):
     """A problem with a dataset on disk, stated in one line naming the file."""
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse whose usage errors are one line and exit 2 (no usage dump)."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def run_command(prog: str, commands: dict, args, interrupted: str) -> int:
+    """Run ``commands[args.command](args)``; user mistakes become one line on stderr and exit 2."""
+    try:
+        return commands[args.command](args)
+    except UserError as e:
+        print(f"{prog} {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"{prog} {args.command}: interrupted; {interrupted}", file=sys.stderr)
+        return 130
+    except OSError as e:
+        if e.errno == errno.ENOSPC:
+            print(f"{prog} {args.command}: error: disk full ({e.filename or ''})", file=sys.stderr)
+            return 2
+        raise

@@ -1,23 +1,17 @@
 """The ``label-tool`` command line: auto, review, compile, stats."""
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
 
-from datagen.errors import UserError
+from datagen.errors import OneLineParser, UserError, run_command
 from datagen.shards import read_index
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):  # one line, non-zero exit
-        self.exit(2, f"{self.prog}: error: {message}\n")
-
-
-def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="label-tool", description="Curate a generated head dataset.")
-    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+def build_parser() -> OneLineParser:
+    p = OneLineParser(prog="label-tool", description="Curate a generated head dataset.")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
 
     a = sub.add_parser("auto", help="score every subject with automatic pre-flags (worst first)")
     a.add_argument("dataset")
@@ -171,15 +165,7 @@ COMMANDS = {"auto": _auto, "review": _review, "compile": _compile, "stats": _sta
 
 
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
-    try:
-        return COMMANDS[args.command](args)
-    except UserError as e:
-        print(f"label-tool {args.command}: error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"label-tool {args.command}: interrupted (every verdict so far is saved)", file=sys.stderr)
-        return 130
+    return run_command("label-tool", COMMANDS, build_parser().parse_args(argv), "every verdict so far is saved")
 
 
 if __name__ == "__main__":

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from ..errors import UserError
-from .triplane import KINDS, TriPlaneGenerator
+from .triplane import TriPlaneGenerator
 
 OFFICIAL_SOURCES = {
     "eg3d": "EG3D checkpoints (e.g. ffhq512-128.pkl, ffhqrebalanced512-128.pkl) come from NVIDIA's NGC catalog, "

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from ..errors import UserError
-from .base import Generator, RenderedViews, Subject, subject_rng  # noqa: F401
+from .base import Generator
 
 AVAILABLE = ("procedural", "eg3d", "panohead", "spherehead")
 GANS = ("eg3d", "panohead", "spherehead")
