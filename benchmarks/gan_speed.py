@@ -360,7 +360,7 @@ def sample_conclusions(results: dict) -> list[str]:
         reference = next(r for r in d["rows"] if r["reference"])
         default = default_row(d)
         enough = next((r for r in rows if _db(r["psnr_rgb_db"]) >= PSNR_TARGET_DB), None)
-        fewest, most = rows[0], rows[-1]
+        fewest = rows[0]
         text = (f"{model}: the checkpoint default {_samples(default)} is at {default['psnr_rgb_db']:.1f} dB image / "
                 f"{default['psnr_alpha_db']:.1f} dB mask PSNR against {REFERENCE_SAMPLES[0]}+{REFERENCE_SAMPLES[1]}, "
                 f"{default['ms_per_view']:.0f} ms per view; ")
