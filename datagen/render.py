@@ -45,15 +45,15 @@ def sample_stratified(ray_start, ray_end, n: int, shape, deterministic: bool,
     ray_start/ray_end: floats, or tensors broadcastable to (B, R, 1).
     """
     B, R = shape
-    t = torch.linspace(0.0, 1.0, n).reshape(1, 1, n, 1)
     start = torch.as_tensor(ray_start, dtype=torch.float32)
-    end = torch.as_tensor(ray_end, dtype=torch.float32)
+    end = torch.as_tensor(ray_end, dtype=torch.float32, device=start.device)
+    t = torch.linspace(0.0, 1.0, n, device=start.device).reshape(1, 1, n, 1)
     if start.dim() > 0:
         start, end = start.reshape(B, R, 1, 1), end.reshape(B, R, 1, 1)
     depths = (start + (end - start) * t).expand(B, R, n, 1).contiguous()
     if not deterministic and n > 1:
         delta = (end - start) / (n - 1)
-        depths = depths + torch.rand(depths.shape, generator=generator) * delta
+        depths = depths + torch.rand(depths.shape, generator=generator).to(start.device) * delta
     return depths
 
 
@@ -68,6 +68,7 @@ def sample_pdf(bins: torch.Tensor, weights: torch.Tensor, n: int, deterministic:
         u = torch.linspace(0.0, 1.0, n).expand(N, n).contiguous()
     else:
         u = torch.rand((N, n), generator=generator)
+    u = u.to(cdf.device)
     idx = torch.searchsorted(cdf, u, right=True)
     below = (idx - 1).clamp(min=0)
     above = idx.clamp(max=M)
@@ -150,7 +151,8 @@ def render_rays(field: Field, origins: torch.Tensor, dirs: torch.Tensor, ray_sta
     Returns (features (B,R,C), depth (B,R,1), alpha (B,R,1)); alpha is the sum of the weights.
     """
     B, R, _ = origins.shape
-    depths = sample_stratified(ray_start, ray_end, settings.depth_resolution, (B, R), settings.deterministic, generator)
+    depths = sample_stratified(ray_start, ray_end, settings.depth_resolution, (B, R), settings.deterministic,
+                               generator).to(origins.device)
     feats, dens = _query(field, origins, dirs, depths)
     if settings.depth_resolution_importance > 0:
         _, _, weights = march(feats, dens, depths, settings.density_activation)

@@ -50,6 +50,14 @@ def shard_name(i: int) -> str:
     return f"shard-{i:06d}"
 
 
+def shard_index(name: str) -> int:
+    """Inverse of :func:`shard_name`."""
+    prefix, _, number = str(name).partition("-")
+    if prefix != "shard" or not number.isdigit():
+        raise DatasetError(f"{name!r} is not a shard name (shard-NNNNNN)")
+    return int(number)
+
+
 def tar_path(root, i) -> Path:
     return Path(root) / f"{shard_name(i)}.tar"
 

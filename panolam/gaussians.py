@@ -1,6 +1,7 @@
 """3D Gaussians: the model's output, and their export in the standard 3D Gaussian Splatting PLY layout.
 
-Attributes are activated (the values a renderer consumes), one set of N Gaussians per object:
+Attributes are activated (the values a renderer consumes), one set of N Gaussians per object, or a
+batch of B sets with a leading B on every attribute (the model's output; ``g[b]`` is one set):
 
 * ``means``     (N, 3) world units (y up, the face looks toward +z, see CONVENTIONS.md).
 * ``quats``     (N, 4) rotation quaternions, wxyz, unit norm.
@@ -50,14 +51,24 @@ class Gaussians:
     colors: torch.Tensor
 
     def __post_init__(self):
-        n = self.means.shape[0]
-        expected = {"means": (n, 3), "quats": (n, 4), "scales": (n, 3), "opacities": (n,), "colors": (n, 3)}
+        lead = tuple(self.means.shape[:-1])
+        expected = {"means": lead + (3,), "quats": lead + (4,), "scales": lead + (3,), "opacities": lead,
+                    "colors": lead + (3,)}
+        if len(lead) not in (1, 2):
+            raise ValueError(f"Gaussians.means has shape {tuple(self.means.shape)}, expected (N, 3) or (B, N, 3)")
         for name, shape in expected.items():
             if tuple(getattr(self, name).shape) != shape:
                 raise ValueError(f"Gaussians.{name} has shape {tuple(getattr(self, name).shape)}, expected {shape}")
 
     def __len__(self) -> int:
-        return self.means.shape[0]
+        """Number of Gaussians per set (N)."""
+        return self.means.shape[-2]
+
+    def __getitem__(self, b: int) -> "Gaussians":
+        """Set ``b`` of a batch."""
+        if self.means.dim() != 3:
+            raise IndexError("indexing needs a batch of Gaussians (a leading B)")
+        return Gaussians(*(getattr(self, f)[b] for f in _FIELDS))
 
     def to(self, *args, **kwargs) -> "Gaussians":
         """Same Gaussians with every attribute moved/cast by ``Tensor.to(*args, **kwargs)``."""
@@ -82,6 +93,8 @@ def _unit_quats(q: np.ndarray) -> np.ndarray:
 
 def ply_vertex_table(g: Gaussians) -> np.ndarray:
     """The (N, 17) float32 table of stored values, columns in ``PLY_PROPERTIES`` order."""
+    if g.means.dim() != 2:
+        raise ValueError("a PLY file holds one set of Gaussians; pass g[b] of a batch")
     as64 = lambda t: t.detach().to("cpu", torch.float64).numpy()  # noqa: E731
     n = len(g)
     table = np.concatenate([

@@ -58,6 +58,10 @@ import torch
 import torch.nn.functional as F
 from torch.autograd.function import once_differentiable
 
+from datagen.cameras import pixel_intrinsics
+
+from .gaussians import Gaussians
+
 EPS2D = 0.3                 # px^2 added to the 2D covariance diagonal
 ALPHA_MAX = 0.99            # alpha clamp
 ALPHA_MIN = 1.0 / 255.0     # smaller alphas are skipped
@@ -105,6 +109,31 @@ def rasterize(means, quats, scales, opacities, colors, viewmat, K, width: int, h
     bins = bin_gaussians(proj, width, height, tile_size)
     acc = _Composite.apply(proj.means2d, proj.conics, proj.log_opacities, colors, proj.depths, bins)
     return _finish(acc, background)
+
+
+def world_to_camera(cam2world: torch.Tensor) -> torch.Tensor:
+    """Inverse of rigid OpenCV cam2world matrices (..., 4, 4), in closed form (R^T, -R^T t)."""
+    rot_t = cam2world[..., :3, :3].transpose(-1, -2)
+    out = torch.zeros_like(cam2world)
+    out[..., :3, :3] = rot_t
+    out[..., :3, 3] = -(rot_t @ cam2world[..., :3, 3:4])[..., 0]
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def render_views(g: Gaussians, cam2world: torch.Tensor, K_norm: torch.Tensor, resolution: int, background=None,
+                 backend: str = "auto"):
+    """A batch of Gaussian sets (B, N, ...) seen by the dataset's cameras.
+
+    cam2world (B, V, 4, 4) OpenCV, K_norm (B, V, 3, 3) normalized intrinsics (CONVENTIONS.md),
+    square images of ``resolution`` px; background (D,) or None (black). Returns rgb (B, V, H, W, D),
+    alpha (B, V, H, W, 1), expected depth (B, V, H, W, 1).
+    """
+    viewmats = world_to_camera(cam2world.to(g.means.dtype))
+    Ks = pixel_intrinsics(K_norm.to(g.means.dtype), resolution, resolution)
+    outs = [rasterize(g.means[b], g.quats[b], g.scales[b], g.opacities[b], g.colors[b], viewmats[b], Ks[b],
+                      resolution, resolution, background, backend=backend) for b in range(g.means.shape[0])]
+    return tuple(torch.stack(parts) for parts in zip(*outs))
 
 
 class Projection(NamedTuple):

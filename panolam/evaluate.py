@@ -1,0 +1,139 @@
+"""Evaluation on held-out subjects (paper protocol): the front view in, front/back/left/right views out.
+
+Per subject, the input is the view nearest yaw 0 deg and the targets are the views nearest yaw
+0/90/180/270 deg (the 360 protocol stores these exactly; a subject without a view within
+``YAW_TOLERANCE`` of each is skipped and counted). Metrics per view on [0, 1] images over the
+dataset background: PSNR, SSIM (11x11 Gaussian window, sigma 1.5), LPIPS when its weights are
+given; CSIM on the front view and APD on the views where a face is found in both images, with
+dlib's models (:mod:`panolam.faces`; not ArcFace and not a 3DMM pose estimator, see there).
+Times: reconstruction (one forward pass) and render per view, medians.
+"""
+from __future__ import annotations
+
+import json
+import math
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from datagen.shards import atomic_write
+
+from .data import accepted_subjects, load_views
+from .metrics import psnr, ssim
+from .model import PanoLAM
+from .rasterizer import render_views
+from .gaussians import Gaussians
+
+EVAL_VIEWS = {"front": 0.0, "left": 90.0, "back": 180.0, "right": 270.0}
+YAW_TOLERANCE = 10.0
+
+
+def nearest_views(yaw_deg: np.ndarray) -> dict | None:
+    """{name: view index} of the views nearest each evaluation yaw, or None if one is missing."""
+    picked = {}
+    for name, target in EVAL_VIEWS.items():
+        diff = np.abs((np.asarray(yaw_deg) - target + 180.0) % 360.0 - 180.0)
+        i = int(diff.argmin())
+        if diff[i] > YAW_TOLERANCE:
+            return None
+        picked[name] = i
+    return picked
+
+
+def _median(values):
+    values = [v for v in values if v is not None and not math.isnan(v)]
+    return statistics.median(values) if values else float("nan")
+
+
+def _mean(values):
+    values = [v for v in values if v is not None and not math.isnan(v)]
+    return float(np.mean(values)) if values else float("nan")
+
+
+@torch.no_grad()
+def evaluate(model: PanoLAM, data, manifest: dict, split: str = "test", resolution: int | None = None,
+             lpips=None, faces=None, limit: int | None = None, progress=None) -> dict:
+    """Metrics per subject and view plus their means; ``faces``: the :mod:`panolam.faces` module (CSIM, APD) or None."""
+    device = next(model.parameters()).device
+    subjects = accepted_subjects(manifest, split)[:limit]
+    rows, skipped, rec_times, render_times = [], [], [], []
+    for key, shard in subjects:
+        meta_views = load_views(data, key, shard, resolution=resolution)
+        picked = nearest_views(meta_views.yaw_deg.numpy())
+        if picked is None:
+            skipped.append(key)
+            continue
+        idx = list(picked.values())
+        images = meta_views.images[idx].to(device)
+        x = images[:1]
+        t0 = time.perf_counter()
+        rec = model(x)
+        _sync(device)
+        rec_times.append(time.perf_counter() - t0)
+        g = Gaussians(*(t.float() for t in (rec.dense.means, rec.dense.quats, rec.dense.scales,
+                                            rec.dense.opacities, rec.dense.colors)))
+        res = images.shape[-1]
+        t0 = time.perf_counter()
+        rgb, _, _ = render_views(g, meta_views.cam2world[idx][None].to(device), meta_views.K[idx][None].to(device),
+                                 res, background=images.new_ones(3))
+        _sync(device)
+        render_times.append((time.perf_counter() - t0) / len(idx))
+        pred = rgb[0].permute(0, 3, 1, 2).clamp(0, 1)
+        p, s = psnr(pred, images), ssim(pred, images)
+        lp = lpips(pred, images).flatten() if lpips is not None else None
+        for j, name in enumerate(picked):
+            row = {"subject": key, "view": name, "psnr": float(p[j]), "ssim": float(s[j]),
+                   "lpips": None if lp is None else float(lp[j])}
+            if faces is not None:
+                a, b = _uint8(pred[j]), _uint8(images[j])
+                row["csim"] = faces.csim(a, b) if name == "front" else None
+                row["apd"] = faces.apd(a, b)
+            rows.append(row)
+        if progress is not None:
+            progress()
+    return summarize(rows, skipped, rec_times, render_times)
+
+
+def _sync(device):
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+
+
+def _uint8(x: torch.Tensor) -> np.ndarray:
+    return (x.permute(1, 2, 0).cpu().numpy() * 255 + 0.5).astype(np.uint8)
+
+
+def summarize(rows: list, skipped: list, rec_times: list, render_times: list) -> dict:
+    metrics = ["psnr", "ssim", "lpips", "csim", "apd"]
+    per_view = {}
+    for name in list(EVAL_VIEWS) + ["all"]:
+        sel = [r for r in rows if name == "all" or r["view"] == name]
+        per_view[name] = {m: _mean([r.get(m) for r in sel]) for m in metrics}
+        per_view[name]["counted"] = {m: sum(1 for r in sel if r.get(m) is not None and not math.isnan(r[m]))
+                                     for m in metrics}
+    return {"subjects": len({r["subject"] for r in rows}), "skipped_subjects": skipped, "per_view": per_view,
+            "reconstruct_s_median": _median(rec_times), "render_ms_per_view_median": _median(render_times) * 1000,
+            "rows": rows}
+
+
+def write_report(result: dict, out: Path, title: str, notes: list[str] = ()) -> tuple[Path, Path]:
+    """Markdown table + JSON of an :func:`evaluate` result."""
+    out.mkdir(parents=True, exist_ok=True)
+    fmt = lambda v: "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.4f}"  # noqa: E731
+    lines = [f"# {title}", "", f"{result['subjects']} subjects evaluated, {len(result['skipped_subjects'])} skipped "
+             f"(no view within {YAW_TOLERANCE:g} deg of front/left/back/right).", "",
+             "| view | PSNR dB | SSIM | LPIPS | CSIM | APD deg |", "|---|---|---|---|---|---|"]
+    for name, m in result["per_view"].items():
+        lines.append(f"| {name} | " + " | ".join(fmt(m[k]) for k in ("psnr", "ssim", "lpips", "csim", "apd")) + " |")
+    counted = result["per_view"]["all"]["counted"]
+    lines += ["", f"Counted views: " + ", ".join(f"{k} {v}" for k, v in counted.items()) + ".",
+              f"Reconstruction {result['reconstruct_s_median'] * 1000:.1f} ms (median, one forward pass); "
+              f"render {result['render_ms_per_view_median']:.1f} ms per view (median).", ""]
+    lines += list(notes)
+    md, js = out / "eval.md", out / "eval.json"
+    atomic_write(md, ("\n".join(lines) + "\n").encode())
+    atomic_write(js, (json.dumps(result, indent=1) + "\n").encode())
+    return md, js

@@ -1,0 +1,426 @@
+"""Faces in photos and renders, offline, with dlib: detection, head crops for inference, identity
+similarity (CSIM) and head pose (APD) for evaluation.
+
+Needs ``dlib`` (the ``dlib-bin`` wheel) and the model files of ``face-recognition-models`` (dlib's
+HOG detector is built in; the MMOD CNN detector, the 5- and 68-point shape predictors and the
+face-recognition ResNet are read from that package). Images are numpy arrays (H, W, 3) RGB, uint8
+or float in [0, 1]; points and boxes are in pixels of the image they came from, (x, y), pixel (row
+i, column j) centred at (j, i).
+
+Detection: dlib's HOG frontal detector (upsample 1, then 2 when nothing is found), each candidate
+confirmed by the MMOD CNN detector on a crop around it (HOG alone fires on e.g. the mission patch
+of ``skimage.data.astronaut``). Found: upright, roughly frontal faces (|yaw| up to ~45 deg, in-plane
+roll up to ~30 deg) of at least ~20 px.
+
+Head crop: the training images are EG3D-style FFHQ crops (camera radius 2.7, FOV 18.84 deg). EG3D's
+``crop_images_in_the_wild.py`` fits Deep3DFaceRecon's 5-point mean face (eye centres, nose tip,
+mouth corners; eye-centre distance 0.6213 units, eyes to mouth 0.6714 units, template origin 0.2900
+units below the eyes), maps 1 unit to 300 px of a 1024 px image and keeps the central 700 px. So
+the crop is 700/300 = 2.333 units wide, centred 0.432 eye-to-mouth lengths below the eye midpoint:
+in a 512 px crop the eyes are 136 px apart at y = 192 px and the mouth is at y = 340 px. We build
+the crop as FFHQ does (a square oriented by the eye-to-eye and eye-to-mouth vectors of dlib's 68
+landmarks, sized by the larger of the two, which is robust to yaw and pitch) with those EG3D sizes.
+"""
+from __future__ import annotations
+
+import functools
+import io
+import math
+import os
+from dataclasses import dataclass
+from importlib.util import find_spec
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, ImageOps, UnidentifiedImageError
+from scipy import ndimage
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+# EG3D framing of the 5-point mean face (module docstring), in template units.
+CROP_SIDE = 700 / 300
+EYE_DISTANCE = 0.62129
+EYE_TO_MOUTH = 0.67135
+CENTRE_BELOW_EYES = 0.29004 / EYE_TO_MOUTH  # fraction of eye-to-mouth
+TRAINING_FOV_DEG = 18.837
+VERIFY_FACE_PX = 90  # a HOG candidate is confirmed by MMOD on a crop 1.6x its width, at this face width
+
+# Generic adult face, mm: x toward the image right of a frontal face, y down, z away from the
+# camera (OpenCV camera axes for a frontal pose); keys are dlib 68-point indices. Eye centres,
+# nose tip and mouth corners follow the Deep3DFaceRecon mean face above (0.1 unit = 10 mm); the
+# other points are generic anthropometric estimates. Jaw contour, brows and lips (which slide or
+# move with expression) are left out, except the chin.
+GENERIC_FACE = {
+    8: (0.0, 85.0, -15.0),                                   # chin
+    27: (0.0, -31.0, -26.0),                                 # top of the nose bridge
+    30: (0.0, 4.6, -55.2),                                   # nose tip
+    31: (-14.0, 10.0, -36.0), 33: (0.0, 14.0, -40.0), 35: (14.0, 10.0, -36.0),  # nostrils
+    36: (-45.0, -29.0, -6.0), 39: (-17.0, -29.0, -20.0),     # eye corners (outer, inner)
+    42: (17.0, -29.0, -20.0), 45: (45.0, -29.0, -6.0),
+    48: (-25.0, 38.1, -22.3), 54: (25.0, 38.1, -22.3),       # mouth corners
+}
+
+
+class FaceError(ValueError):
+    """No usable face (or an unreadable image); the message is one line for the user."""
+
+
+@dataclass(frozen=True)
+class Box:
+    """A face: [left, right) x [top, bottom) in pixels; score: HOG detector confidence."""
+    left: float
+    top: float
+    right: float
+    bottom: float
+    score: float
+
+    @property
+    def width(self) -> float:
+        return self.right - self.left
+
+    @property
+    def area(self) -> float:
+        return self.width * (self.bottom - self.top)
+
+    def scaled(self, k: float) -> Box:
+        return Box(self.left * k, self.top * k, self.right * k, self.bottom * k, self.score)
+
+
+# ---------------------------------------------------------------------------------------- models
+
+def _dlib():
+    try:
+        import dlib
+    except ImportError:
+        raise ImportError("panolam.faces needs dlib: pip install dlib-bin (prebuilt wheels of dlib)") from None
+    return dlib
+
+
+def models_dir() -> Path:
+    """Folder of dlib's model files from the face-recognition-models package."""
+    spec = find_spec("face_recognition_models")  # not imported: its __init__ needs pkg_resources
+    if spec is None or not spec.submodule_search_locations:
+        raise ImportError("dlib's face models are missing: pip install face-recognition-models")
+    return Path(next(iter(spec.submodule_search_locations))) / "models"
+
+
+def _model_file(name: str) -> str:
+    path = models_dir() / name
+    if not path.is_file():
+        raise ImportError(f"{path} is missing: pip install --force-reinstall face-recognition-models")
+    return str(path)
+
+
+def check_dlib() -> None:
+    """Raise ImportError (one line, with the pip command) unless dlib and its model files are installed."""
+    _dlib()
+    for name in ("mmod_human_face_detector.dat", "shape_predictor_5_face_landmarks.dat",
+                 "shape_predictor_68_face_landmarks.dat", "dlib_face_recognition_resnet_model_v1.dat"):
+        _model_file(name)
+
+
+@functools.lru_cache(maxsize=None)
+def _hog():
+    return _dlib().get_frontal_face_detector()
+
+
+@functools.lru_cache(maxsize=None)
+def _mmod():
+    return _dlib().cnn_face_detection_model_v1(_model_file("mmod_human_face_detector.dat"))
+
+
+@functools.lru_cache(maxsize=None)
+def _predictor(points: int):
+    return _dlib().shape_predictor(_model_file(f"shape_predictor_{points}_face_landmarks.dat"))
+
+
+@functools.lru_cache(maxsize=None)
+def _resnet():
+    return _dlib().face_recognition_model_v1(_model_file("dlib_face_recognition_resnet_model_v1.dat"))
+
+
+# ---------------------------------------------------------------------------------------- images
+
+def _to_float_rgb(image) -> np.ndarray:
+    """(H, W, 3) float32 in [0, 1] from gray / gray+alpha / RGB / RGBA, uint8 / uint16 / float;
+    transparent pixels are composited on white."""
+    a = np.asarray(image)
+    if a.ndim == 2:
+        a = a[..., None]
+    if a.ndim != 3 or a.shape[2] not in (1, 2, 3, 4) or min(a.shape[:2]) < 1:
+        raise FaceError(f"expected an image (H, W) or (H, W, 1-4 channels), got shape {a.shape}")
+    if a.dtype.kind == "u" and a.itemsize == 1:
+        a = a.astype(np.float32) / 255
+    elif a.dtype.kind in "ui":  # 16-bit data (Pillow reads 16-bit gray PNGs as int32 or uint16)
+        a = np.clip(a.astype(np.float32) / 65535, 0, 1)
+    elif a.dtype.kind in "fb":
+        a = np.clip(np.nan_to_num(a.astype(np.float32)), 0, 1)
+    else:
+        raise FaceError(f"unsupported image dtype {a.dtype}")
+    if a.shape[2] in (2, 4):
+        a, alpha = a[..., :-1], a[..., -1:]
+        a = a * alpha + (1 - alpha)
+    return np.ascontiguousarray(np.broadcast_to(a, a.shape[:2] + (3,)), dtype=np.float32)
+
+
+def _to_uint8(rgb: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(np.rint(rgb * 255).astype(np.uint8))
+
+
+def _rgb_u8(image) -> np.ndarray:
+    a = np.asarray(image)
+    if a.dtype == np.uint8 and a.ndim == 3 and a.shape[2] == 3:
+        return np.ascontiguousarray(a)
+    return _to_uint8(_to_float_rgb(a))
+
+
+def _resize(u8: np.ndarray, k: float) -> np.ndarray:
+    h, w = u8.shape[:2]
+    size = (max(1, round(w * k)), max(1, round(h * k)))
+    return np.asarray(Image.fromarray(u8).resize(size, Image.Resampling.LANCZOS))
+
+
+def load_image(src) -> tuple[np.ndarray, str]:
+    """(H, W, 3) float32 RGB in [0, 1] and a name for messages, from a path, encoded bytes or an
+    array. Applies the EXIF orientation; composites transparency on white; keeps 16-bit gray
+    precision (16-bit RGB files are read at 8 bits by Pillow)."""
+    if isinstance(src, np.ndarray):
+        return _to_float_rgb(src), f"array {src.shape}"
+    name = "image bytes" if isinstance(src, (bytes, bytearray)) else str(src)
+    try:
+        with Image.open(io.BytesIO(src) if isinstance(src, (bytes, bytearray)) else os.fspath(src)) as im:
+            im = ImageOps.exif_transpose(im)
+            im.load()
+            if im.mode.startswith("I") or im.mode == "F":
+                return _to_float_rgb(np.asarray(im)), name
+            has_alpha = "A" in im.getbands() or "transparency" in im.info
+            return _to_float_rgb(np.asarray(im.convert("RGBA" if has_alpha else "RGB"))), name
+    except UnidentifiedImageError:
+        raise FaceError(f"cannot read image {name}: not an image format Pillow can decode") from None
+    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as e:
+        raise FaceError(f"cannot read image {name}: {e}") from None
+
+
+# ------------------------------------------------------------------------------------- detection
+
+def _dlib_rect(box: Box):
+    return _dlib().rectangle(round(box.left), round(box.top), round(box.right) - 1, round(box.bottom) - 1)
+
+
+def _confirmed(u8: np.ndarray, box: Box) -> bool:
+    """Whether the MMOD CNN detector finds a face centred inside ``box`` on a crop around it."""
+    h, w = u8.shape[:2]
+    cx, cy, half = (box.left + box.right) / 2, (box.top + box.bottom) / 2, 0.8 * box.width
+    x0, y0 = max(0, int(cx - half)), max(0, int(cy - half))
+    x1, y1 = min(w, int(math.ceil(cx + half))), min(h, int(math.ceil(cy + half)))
+    k = VERIFY_FACE_PX / box.width
+    crop = _resize(u8[y0:y1, x0:x1], k)
+    for det in _mmod()(crop, 0):
+        r = det.rect
+        fx, fy = x0 + (r.left() + r.right()) / 2 / k, y0 + (r.top() + r.bottom()) / 2 / k
+        if box.left <= fx < box.right and box.top <= fy < box.bottom:
+            return True
+    return False
+
+
+def detect_faces(image, max_side: int = 1024, verify: bool = True) -> list[Box]:
+    """Faces in an RGB image, largest first, boxes in its pixels. Images larger than ``max_side`` px
+    are searched downscaled; ``verify=False`` skips the CNN confirmation (faster, more false hits)."""
+    u8 = _rgb_u8(image)
+    k = min(1.0, max_side / max(u8.shape[:2]))
+    work = _resize(u8, k) if k < 1 else u8
+    for upsample in (1, 2):
+        rects, scores, _ = _hog().run(work, upsample, 0.0)
+        boxes = [Box(r.left(), r.top(), r.right() + 1, r.bottom() + 1, s) for r, s in zip(rects, scores)]
+        if verify:
+            boxes = [b for b in boxes if _confirmed(work, b)]
+        if boxes:
+            return sorted((b.scaled(1 / k) for b in boxes), key=lambda b: -b.area)
+    return []
+
+
+def landmarks(image, box: Box, points: int = 68) -> np.ndarray:
+    """dlib's 68- or 5-point landmarks of the face in ``box``, (points, 2) float64 pixels (x, y)."""
+    shape = _predictor(points)(_rgb_u8(image), _dlib_rect(box))
+    return np.array([(p.x, p.y) for p in shape.parts()], dtype=np.float64)
+
+
+# ------------------------------------------------------------------------------------------ crop
+
+def head_quad(lm68: np.ndarray, scale: float = 1.0) -> np.ndarray:
+    """Corners (top-left, bottom-left, bottom-right, top-right), (4, 2) px, of the EG3D-framed
+    square head crop of a face with these 68 landmarks (module docstring); ``scale`` > 1 widens it."""
+    eye_l, eye_r = lm68[36:42].mean(axis=0), lm68[42:48].mean(axis=0)
+    eye_avg, eye_to_eye = (eye_l + eye_r) / 2, eye_r - eye_l
+    eye_to_mouth = (lm68[48] + lm68[54]) / 2 - eye_avg
+    x = eye_to_eye - np.flipud(eye_to_mouth) * [-1, 1]  # FFHQ: right direction from both vectors
+    x /= np.hypot(*x)
+    half = scale * CROP_SIDE / 2 * max(np.hypot(*eye_to_eye) / EYE_DISTANCE, np.hypot(*eye_to_mouth) / EYE_TO_MOUTH)
+    x *= half
+    y = np.flipud(x) * [-1, 1]
+    c = eye_avg + CENTRE_BELOW_EYES * eye_to_mouth
+    return np.stack([c - x - y, c - x + y, c + x + y, c + x - y])
+
+
+def _pad(img: np.ndarray, pads: tuple[int, int, int, int], side: float, pad) -> np.ndarray:
+    """Pad (top, bottom, left, right) px; 'blur' mirrors the image, blurs the mirrored part and fades
+    it to the median colour over 0.3 crop sides (as FFHQ); an RGB tuple in [0, 1] fills with it."""
+    t, b, l, r = pads
+    if pad != "blur":
+        out = np.empty((img.shape[0] + t + b, img.shape[1] + l + r, 3), np.float32)
+        out[:] = np.asarray(pad, np.float32)
+        out[t:t + img.shape[0], l:l + img.shape[1]] = img
+        return out
+    mode = "reflect" if min(img.shape[:2]) > 1 else "edge"
+    out = np.pad(img, ((t, b), (l, r), (0, 0)), mode=mode)
+    yy, xx = np.arange(out.shape[0]), np.arange(out.shape[1])
+    dy = np.maximum(np.maximum(t - yy, yy - (t + img.shape[0] - 1)), 0)
+    dx = np.maximum(np.maximum(l - xx, xx - (l + img.shape[1] - 1)), 0)
+    outside = np.maximum(dy[:, None], dx[None, :])[..., None].astype(np.float32)
+    blurred = ndimage.gaussian_filter(out, sigma=(0.02 * side, 0.02 * side, 0))
+    out += (blurred - out) * np.clip(outside / (0.05 * side), 0, 1)
+    out += (np.median(img.reshape(-1, 3), axis=0) - out) * np.clip(outside / (0.3 * side), 0, 1)
+    return out
+
+
+def warp_quad(rgb: np.ndarray, quad: np.ndarray, out_size: int, pad="blur") -> np.ndarray:
+    """Resample the square ``quad`` (head_quad's corner order) of a float RGB image to
+    (out_size, out_size, 3) float32: box-filtered first when it is 2x or more larger, bilinear,
+    padded with ``pad`` (see _pad) where it leaves the image."""
+    quad = np.asarray(quad, np.float64)
+    side = float(np.hypot(*(quad[3] - quad[0])))
+    h, w = rgb.shape[:2]
+    lo = np.floor(quad.min(axis=0)).astype(int) - 2
+    hi = np.ceil(quad.max(axis=0)).astype(int) + 3
+    x0, y0 = np.clip(lo, 0, [w - 1, h - 1])
+    x1, y1 = np.maximum(np.minimum(hi, [w, h]), [x0 + 1, y0 + 1])
+    img, quad = rgb[y0:y1, x0:x1], quad - [x0, y0]
+    shrink = int(side // out_size)
+    if shrink >= 2 and min(img.shape[:2]) >= shrink:
+        hh, ww = img.shape[0] // shrink * shrink, img.shape[1] // shrink * shrink
+        img = img[:hh, :ww].reshape(hh // shrink, shrink, ww // shrink, shrink, 3).mean(axis=(1, 3))
+        quad, side = (quad + 0.5) / shrink - 0.5, side / shrink
+    lo = np.floor(quad.min(axis=0)).astype(int) - 2
+    hi = np.ceil(quad.max(axis=0)).astype(int) + 3
+    l, t = np.maximum(-lo, 0)
+    r, b = np.maximum(hi - [img.shape[1], img.shape[0]], 0)
+    if l or t or r or b:
+        img = _pad(img, (t, b, l, r), side, pad)
+        quad = quad + [l, t]
+    u = (np.arange(out_size) + 0.5) / out_size
+    src = quad[0] + u[None, :, None] * (quad[3] - quad[0]) + u[:, None, None] * (quad[1] - quad[0])
+    coords = [src[..., 1], src[..., 0]]
+    return np.stack([ndimage.map_coordinates(img[..., ch], coords, order=1, mode="nearest")
+                     for ch in range(3)], axis=-1).astype(np.float32)
+
+
+def crop_head(image, box: Box, out_size: int, scale: float = 1.0, pad="blur") -> np.ndarray:
+    """EG3D-framed (out_size, out_size, 3) float32 head crop in [0, 1] of the face in ``box``."""
+    rgb = _to_float_rgb(image)
+    return warp_quad(rgb, head_quad(landmarks(_to_uint8(rgb), box), scale), out_size, pad)
+
+
+def prepare_photo(src, out_size: int = 512, pick: str = "single", scale: float = 1.0, pad="blur",
+                  max_side: int = 1024) -> tuple[np.ndarray, dict]:
+    """A photo (path, encoded bytes or array) -> its EG3D-framed head crop, (out_size, out_size, 3)
+    float32 in [0, 1], and an info dict (source, size (W, H), n_faces, box, quad, face_px = eye
+    distance in source px, upsampled = the crop enlarges the source).
+
+    Raises FaceError for an unreadable file, no face, or several faces unless ``pick='largest'``.
+    """
+    if pick not in ("single", "largest"):
+        raise ValueError(f"pick must be 'single' or 'largest', got {pick!r}")
+    rgb, name = load_image(src)
+    h, w = rgb.shape[:2]
+    u8 = _to_uint8(rgb)
+    faces = detect_faces(u8, max_side=max_side)
+    if not faces:
+        raise FaceError(f"no face found in {name} ({w}x{h} px): a face must be upright, roughly frontal "
+                        f"and at least ~20 px wide")
+    if len(faces) > 1 and pick == "single":
+        raise FaceError(f"{len(faces)} faces found in {name}; pass pick='largest' to use the largest")
+    lm = landmarks(u8, faces[0])
+    quad = head_quad(lm, scale)
+    side = float(np.hypot(*(quad[3] - quad[0])))
+    info = dict(source=name, size=(w, h), n_faces=len(faces), box=faces[0], quad=quad,
+                face_px=float(np.hypot(*(lm[42:48].mean(0) - lm[36:42].mean(0)))), upsampled=side < out_size)
+    return warp_quad(rgb, quad, out_size, pad), info
+
+
+# ------------------------------------------------------------------------------ identity, pose
+
+class FaceEmbedder:
+    """dlib's face-recognition ResNet (128-d, 5-point aligned 150 px chips) on the largest face.
+
+    This is dlib's network, NOT the ArcFace (insightface) network the paper's CSIM uses: values
+    are comparable between our own runs only, not with published CSIM numbers.
+    """
+
+    def embed(self, image) -> np.ndarray | None:
+        """128-d descriptor of the largest face, or None when no face is found."""
+        u8 = _rgb_u8(image)
+        faces = detect_faces(u8)
+        if not faces:
+            return None
+        shape = _predictor(5)(u8, _dlib_rect(faces[0]))
+        return np.asarray(_resnet().compute_face_descriptor(u8, shape), dtype=np.float64)
+
+
+@functools.lru_cache(maxsize=None)
+def _embedder() -> FaceEmbedder:
+    return FaceEmbedder()
+
+
+def csim(img_a, img_b, embedder: FaceEmbedder | None = None) -> float:
+    """Identity similarity: cosine of dlib ResNet embeddings (not ArcFace, see FaceEmbedder), in
+    [-1, 1]; nan when either image has no face (the caller counts and reports those skipped)."""
+    embedder = embedder or _embedder()
+    a, b = embedder.embed(img_a), embedder.embed(img_b)
+    if a is None or b is None:
+        return math.nan
+    return float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))
+
+
+def pose_from_landmarks(lm68: np.ndarray, width: int, height: int,
+                        fov_deg: float = TRAINING_FOV_DEG) -> tuple[float, float, float]:
+    """(yaw, pitch, roll) in degrees from 68 landmarks: perspective PnP of GENERIC_FACE (least
+    squares on the reprojection error), focal from ``fov_deg`` across the image width, principal
+    point at the centre. yaw > 0: the face turns toward the image right; pitch > 0: it looks up;
+    roll > 0: it tilts clockwise in the image. Rotation = Ry(-yaw) Rx(-pitch) Rz(roll), camera axes."""
+    lm68 = np.asarray(lm68, np.float64)
+    model, obs = np.array(list(GENERIC_FACE.values())), lm68[list(GENERIC_FACE)]
+    f = 0.5 * width / math.tan(math.radians(fov_deg) / 2)
+    centre = np.array([width / 2, height / 2])
+    # start frontal, at the distance where the outer eye corners are as far apart as observed;
+    # the translation is solved in units of that distance z0
+    z0 = f * (GENERIC_FACE[45][0] - GENERIC_FACE[36][0]) / max(np.hypot(*(lm68[45] - lm68[36])), 1e-6)
+
+    def residuals(p):
+        cam = Rotation.from_rotvec(p[:3]).apply(model) + p[3:] * z0
+        return ((cam[:, :2] / cam[:, 2:] * f + centre) - obs).ravel()
+
+    start = np.r_[0, 0, 0, (obs.mean(axis=0) - centre) / f, 1]
+    p = least_squares(residuals, start).x
+    y_angle, x_angle, z_angle = Rotation.from_rotvec(p[:3]).as_euler("YXZ", degrees=True)
+    return -y_angle, -x_angle, z_angle
+
+
+def head_pose(image, fov_deg: float = TRAINING_FOV_DEG) -> tuple[float, float, float]:
+    """(yaw, pitch, roll) in degrees of the largest face (see pose_from_landmarks); FaceError when
+    there is none. Landmark PnP with a generic face, not the paper's 3DMM-based estimator."""
+    u8 = _rgb_u8(image)
+    faces = detect_faces(u8)
+    if not faces:
+        raise FaceError(f"no face found ({u8.shape[1]}x{u8.shape[0]} px)")
+    return pose_from_landmarks(landmarks(u8, faces[0]), u8.shape[1], u8.shape[0], fov_deg)
+
+
+def apd(img_a, img_b, fov_deg: float = TRAINING_FOV_DEG) -> float:
+    """Average pose distance: mean |difference| of yaw, pitch and roll in degrees between the faces
+    of two images; nan when either has no face (caller reports how many were skipped). Ours is
+    landmark PnP with a generic face; the paper's APD uses 3DMM (Deep3DFaceRecon) angles."""
+    try:
+        a, b = head_pose(img_a, fov_deg), head_pose(img_b, fov_deg)
+    except FaceError:
+        return math.nan
+    return float(np.mean([abs((x - y + 180) % 360 - 180) for x, y in zip(a, b)]))

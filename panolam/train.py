@@ -1,0 +1,342 @@
+"""Training on a curated manifest: losses of the paper, exact resume, data parallel over processes.
+
+Per sample, N_v views of one subject: the first is the input, the others are the targets
+(:mod:`panolam.data`). Loss (paper Eq. 9): ``lambda_3 L_rgb(G) + lambda_4 L_rgb(ST) + lambda_5 L_mask
++ lambda_6 L_st`` with ``L_rgb = lambda_1 L1 + lambda_2 L_perceptual`` on the coarse and dense
+Gaussian renders (G) and on the tri-plane branch's own render (ST, over black at its resolution),
+``L_mask`` the L1 of coarse and dense alpha against the masks, ``L_st`` the L1 between the
+predicted planes and the GAN's planes when the dataset stores them (``--save-planes``). The
+perceptual term is LPIPS when its weights are given, otherwise D-SSIM ``(1 - SSIM) / 2`` (the log
+says which).
+
+Optimizer: Adam, linear warm-up then cosine decay, gradient-norm clipping; bf16 autocast on CUDA.
+A checkpoint (written atomically) holds model, optimizer, scheduler, RNG states, step and both
+configs; since the data order is a pure function of (seed, sample index), resuming continues
+exactly. Several processes (``torchrun`` or ``panolam train --nproc N``) average gradients with
+torch.distributed (gloo on CPU, nccl on CUDA); each takes its own slice of every global batch.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+import torch
+import torch.distributed as dist
+import torch.nn.functional as F
+
+from datagen.errors import UserError
+
+from .config import ModelConfig
+from .data import BACKGROUND, TrainingSamples, Views, collate
+from .metrics import psnr, ssim
+from .model import PanoLAM, Reconstruction
+from .rasterizer import render_views
+
+CHECKPOINT = "checkpoint.pt"
+
+
+class TrainingError(RuntimeError):
+    """Training cannot go on (non-finite loss, incompatible checkpoint)."""
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    steps: int = 2000
+    batch_size: int = 2                 # per process
+    views_per_sample: int = 6           # N_v: one input + N_v - 1 targets
+    render_resolution: int = 64         # px of the supervised renders (targets are area-resized)
+    lr: float = 4e-4
+    betas: tuple = (0.9, 0.95)
+    warmup_steps: int = 100
+    grad_clip: float = 1.0
+    lambda_l1: float = 1.0              # lambda_1
+    lambda_perceptual: float = 1.0      # lambda_2
+    lambda_gaussians: float = 1.0       # lambda_3
+    lambda_triplane_rgb: float = 0.1    # lambda_4
+    lambda_mask: float = 1.0            # lambda_5
+    lambda_planes: float = 1e-4         # lambda_6
+    lpips_backbone: Optional[str] = None
+    lpips_lin: Optional[str] = None
+    lpips_net: str = "alex"
+    seed: int = 0
+    num_workers: int = 0
+    log_every: int = 10
+    image_every: int = 200
+    checkpoint_every: int = 100
+    time_limit_s: Optional[float] = None  # stop (with a checkpoint) after this long
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+# -- losses ---------------------------------------------------------------------------------------------
+class Perceptual:
+    """LPIPS when its weights are given, else D-SSIM; called on (N, 3, H, W) in [0, 1]."""
+
+    def __init__(self, cfg: TrainConfig, device):
+        self.lpips = None
+        if cfg.lpips_backbone or cfg.lpips_lin:
+            from .metrics import load_lpips
+            self.lpips = load_lpips(cfg.lpips_backbone, cfg.lpips_lin, net=cfg.lpips_net).to(device).eval()
+            self.lpips.requires_grad_(False)
+        self.name = f"LPIPS-{cfg.lpips_net}" if self.lpips is not None else "D-SSIM (no LPIPS weights given)"
+
+    def __call__(self, pred, target):
+        if self.lpips is not None:
+            return self.lpips(pred, target).mean()
+        return ((1 - ssim(pred, target)) / 2).mean()
+
+
+def _flat(x: torch.Tensor) -> torch.Tensor:
+    return x.reshape(-1, *x.shape[-3:])
+
+
+def _channels_first(x: torch.Tensor) -> torch.Tensor:
+    """(B, V, H, W, C) renders -> (B, V, C, H, W)."""
+    return x.permute(0, 1, 4, 2, 3)
+
+
+def compute_losses(model: PanoLAM, batch: Views, cfg: TrainConfig, perceptual: Perceptual, autocast: bool = False):
+    """Forward the inputs, render the targets; returns (total loss, named parts, renders for logging)."""
+    core = model.module if hasattr(model, "module") else model
+    inputs, targets, masks = batch.images[:, 0], batch.images[:, 1:], batch.masks[:, 1:]
+    cam2world, K = batch.cam2world[:, 1:], batch.K[:, 1:]
+    with torch.autocast(inputs.device.type, dtype=torch.bfloat16, enabled=autocast):
+        rec: Reconstruction = model(inputs)
+    res = cfg.render_resolution
+    bg = inputs.new_tensor(BACKGROUND)
+    parts, renders = {}, {}
+    rgb_terms = []
+    for name, g in (("dense", rec.dense), ("coarse", rec.coarse)):
+        if g is None:
+            continue
+        rgb, alpha, _ = render_views(g.to(torch.float32), cam2world, K, res, background=bg)
+        rgb, alpha = _channels_first(rgb), _channels_first(alpha)
+        renders[name] = rgb
+        parts[f"l1_{name}"] = (rgb - targets).abs().mean()
+        parts[f"perceptual_{name}"] = perceptual(_flat(rgb), _flat(targets))
+        parts[f"mask_{name}"] = (alpha - masks).abs().mean()
+        rgb_terms.append(cfg.lambda_l1 * parts[f"l1_{name}"] + cfg.lambda_perceptual * parts[f"perceptual_{name}"])
+    total = cfg.lambda_gaussians * sum(rgb_terms)
+    total = total + cfg.lambda_mask * sum(v for k, v in parts.items() if k.startswith("mask_"))
+    if rec.planes is not None:
+        planes = rec.planes.float()
+        r = core.cfg.triplane_render_resolution
+        rgb_t, _ = core.render_triplane(planes, cam2world, K, r)
+        premultiplied = _flat(targets - (1 - masks) * bg.view(1, 1, 3, 1, 1))
+        target_t = F.interpolate(premultiplied, size=(r, r), mode="area").view_as(rgb_t)
+        parts["l1_triplane"] = (rgb_t - target_t).abs().mean()
+        parts["perceptual_triplane"] = perceptual(_flat(rgb_t).clamp(0, 1), _flat(target_t).clamp(0, 1))
+        total = total + cfg.lambda_triplane_rgb * (cfg.lambda_l1 * parts["l1_triplane"] +
+                                                   cfg.lambda_perceptual * parts["perceptual_triplane"])
+        renders["triplane"] = rgb_t
+        if batch.planes is not None:
+            gan = batch.planes.to(planes)
+            if gan.shape[:4] == planes.shape[:4]:
+                gan = F.interpolate(gan.flatten(0, 3), size=planes.shape[-2:], mode="area").view_as(planes)
+                parts["planes"] = (planes - gan).abs().mean()
+                total = total + cfg.lambda_planes * parts["planes"]
+    with torch.no_grad():
+        parts["psnr_dense"] = psnr(_flat(renders["dense"]).clamp(0, 1), _flat(targets)).mean()
+    return total, parts, renders
+
+
+# -- schedule, checkpoints --------------------------------------------------------------------------------
+def lr_factor(step: int, cfg: TrainConfig) -> float:
+    """Linear warm-up to 1, then cosine decay to 0 at ``cfg.steps``."""
+    if step < cfg.warmup_steps:
+        return (step + 1) / cfg.warmup_steps
+    progress = (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps)
+    return 0.5 * (1 + math.cos(math.pi * min(1.0, progress)))
+
+
+def save_checkpoint(out: Path, model, optimizer, scheduler, step: int, model_cfg: ModelConfig, cfg: TrainConfig,
+                    history: list) -> Path:
+    """Write ``out/checkpoint.pt`` atomically (temporary name, then rename)."""
+    core = model.module if hasattr(model, "module") else model
+    state = {"format": "panolam-checkpoint/1", "step": step, "model": core.state_dict(),
+             "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
+             "rng": torch.get_rng_state(), "model_config": model_cfg.to_dict(), "train_config": cfg.to_dict(),
+             "history": history}
+    path = out / CHECKPOINT
+    tmp = path.with_name(f".{path.name}.tmp")
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+    return path
+
+
+def read_checkpoint(path) -> dict:
+    """A checkpoint file or a run directory holding one; one-line errors."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / CHECKPOINT
+    if not path.exists():
+        raise UserError(f"{path}: no checkpoint here")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # torch raises several types for truncated or foreign files
+        raise UserError(f"{path}: not a readable checkpoint ({type(e).__name__})") from None
+    if not isinstance(state, dict) or state.get("format") != "panolam-checkpoint/1":
+        raise UserError(f"{path}: not a PanoLAM checkpoint")
+    return state
+
+
+def load_model(path, device="cpu", **overrides) -> PanoLAM:
+    """The trained model of a checkpoint, in eval mode."""
+    state = read_checkpoint(path)
+    cfg = ModelConfig.from_dict(state["model_config"]).replace(**overrides)
+    model = PanoLAM(cfg)
+    try:
+        model.load_state_dict(state["model"])
+    except RuntimeError as e:
+        first = str(e).splitlines()[0]
+        raise UserError(f"{path}: checkpoint does not fit config {cfg.name!r} ({first})") from None
+    return model.to(device).eval()
+
+
+# -- the loop -----------------------------------------------------------------------------------------------
+def _distributed() -> tuple[int, int]:
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
+def sample_indices(step: int, cfg: TrainConfig, rank: int, world: int) -> list[int]:
+    """Global sample indices of this process's share of the global batch at ``step``."""
+    first = (step * world + rank) * cfg.batch_size
+    return list(range(first, first + cfg.batch_size))
+
+
+class _Steps(torch.utils.data.Sampler):
+    def __init__(self, start: int, cfg: TrainConfig, rank: int, world: int):
+        self.start, self.cfg, self.rank, self.world = start, cfg, rank, world
+
+    def __iter__(self):
+        for step in range(self.start, self.cfg.steps):
+            yield sample_indices(step, self.cfg, self.rank, self.world)
+
+    def __len__(self):
+        return max(0, self.cfg.steps - self.start)
+
+
+def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume: bool = False,
+          device: str = "cpu", progress: bool = True) -> dict:
+    """Train (or resume) a run in ``out``; returns the final log entry. Rank 0 writes files."""
+    rank, world = _distributed()
+    out = Path(out)
+    torch.manual_seed(cfg.seed)
+    state = None
+    if resume:
+        state = read_checkpoint(out)
+        if state["model_config"] != model_cfg.to_dict():
+            raise UserError(f"{out}: the checkpoint was trained with config {state['model_config']['name']!r}; "
+                            f"resume with the same config")
+    elif (out / CHECKPOINT).exists():
+        raise UserError(f"{out} already holds a run; pass --resume to continue it or choose another --out")
+    dataset = TrainingSamples(data, manifest, "train", cfg.views_per_sample, cfg.render_resolution, cfg.seed)
+    model = PanoLAM(model_cfg).to(device)
+    params = [p for p in model.parameters() if p.requires_grad]
+    optimizer = torch.optim.Adam(params, lr=cfg.lr, betas=cfg.betas)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda s: lr_factor(s, cfg))
+    step, history = 0, []
+    if state is not None:
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["scheduler"])
+        torch.set_rng_state(state["rng"])
+        step, history = state["step"], state["history"]
+    if world > 1:
+        model = torch.nn.parallel.DistributedDataParallel(model)
+    perceptual = Perceptual(cfg, device)
+    loader = torch.utils.data.DataLoader(dataset, batch_sampler=_Steps(step, cfg, rank, world), collate_fn=collate,
+                                         num_workers=cfg.num_workers)
+    writer = _writer(out) if rank == 0 else None
+    if rank == 0:
+        out.mkdir(parents=True, exist_ok=True)
+        _log_text(out, f"perceptual loss: {perceptual.name}; {len(dataset)} training subjects; "
+                       f"{world} process(es); start at step {step}")
+    bar = _progress(progress and rank == 0, step, cfg.steps)
+    started, entry = time.monotonic(), {}
+    model.train()
+    for batch in loader:
+        batch = Views(batch.key, *(t.to(device) if torch.is_tensor(t) else t for t in
+                                   (batch.images, batch.masks, batch.cam2world, batch.K, batch.yaw_deg, batch.planes)))
+        t0 = time.perf_counter()
+        loss, parts, renders = compute_losses(model, batch, cfg, perceptual, autocast=device.startswith("cuda"))
+        if not torch.isfinite(loss):
+            bad = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in parts.items())
+            raise TrainingError(f"non-finite loss at step {step} (subjects {batch.key}): {bad}")
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        grad_norm = torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)
+        optimizer.step()
+        scheduler.step()
+        step += 1
+        entry = {"step": step, "loss": float(loss.detach()), "lr": scheduler.get_last_lr()[0], "grad_norm": float(grad_norm),
+                 "seconds": time.perf_counter() - t0, **{k: float(v.detach()) for k, v in parts.items()}}
+        history.append(entry)
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(loss=f"{entry['loss']:.4f}", psnr=f"{entry['psnr_dense']:.2f}")
+        if writer is not None:
+            if step % cfg.log_every == 0 or step == cfg.steps:
+                for k, v in entry.items():
+                    if k != "step":
+                        writer.add_scalar(f"train/{k}", v, step)
+            if step % cfg.image_every == 0 or step == 1:
+                writer.add_image("train/input|dense|coarse|target", _grid(batch, renders), step)
+        out_of_time = cfg.time_limit_s is not None and time.monotonic() - started > cfg.time_limit_s
+        if rank == 0 and (step % cfg.checkpoint_every == 0 or step == cfg.steps or out_of_time):
+            save_checkpoint(out, model, optimizer, scheduler, step, model_cfg, cfg, history)
+        if out_of_time:
+            break
+    if bar is not None:
+        bar.close()
+    if writer is not None:
+        writer.close()
+    return entry
+
+
+def _grid(batch: Views, renders: dict) -> torch.Tensor:
+    """One image (3, H, W): rows input | dense | coarse | target for the first sample's targets."""
+    targets = batch.images[0, 1:]
+    size = targets.shape[-1]
+    inp = F.interpolate(batch.images[:1, 0], size=(size, size), mode="area").expand(len(targets), -1, -1, -1)
+    rows = [inp, renders["dense"][0]] + ([renders["coarse"][0]] if "coarse" in renders else []) + [targets]
+    rows = [torch.cat(list(r.detach().float().clamp(0, 1).cpu()), dim=-1) for r in rows]
+    return torch.cat(rows, dim=-2)
+
+
+def _writer(out: Path):
+    from torch.utils.tensorboard import SummaryWriter
+    return SummaryWriter(str(out / "tb"))
+
+
+def _log_text(out: Path, line: str) -> None:
+    with open(out / "train.log", "a") as f:
+        f.write(line + "\n")
+    print(line, flush=True)
+
+
+def _progress(enabled: bool, start: int, total: int):
+    if not enabled:
+        return None
+    from tqdm import tqdm
+    return tqdm(total=total, initial=start, desc="train", dynamic_ncols=True)
+
+
+def main(argv=None) -> int:
+    """``python -m panolam.train ...`` = ``panolam train ...`` (torchrun sets the process group up)."""
+    import sys
+    from .cli import main as cli_main
+    return cli_main(["train", *(sys.argv[1:] if argv is None else argv)])
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
