@@ -226,8 +226,12 @@ class _Steps(torch.utils.data.Sampler):
 
 
 def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume: bool = False,
-          device: str = "cpu", progress: bool = True) -> dict:
-    """Train (or resume) a run in ``out``; returns the final log entry. Rank 0 writes files."""
+          device: str = "cpu", progress: bool = True, until: Optional[int] = None) -> dict:
+    """Train (or resume) a run in ``out``; returns the final log entry. Rank 0 writes files.
+
+    ``until``: stop (with a checkpoint) after this step without changing the schedule, which is set
+    by ``cfg.steps``; resuming then continues exactly (used to evaluate a run part way).
+    """
     rank, world = _distributed()
     out = Path(out)
     torch.manual_seed(cfg.seed)
@@ -291,10 +295,11 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
                         writer.add_scalar(f"train/{k}", v, step)
             if step % cfg.image_every == 0 or step == 1:
                 writer.add_image("train/input|dense|coarse|target", _grid(batch, renders), step)
-        out_of_time = cfg.time_limit_s is not None and time.monotonic() - started > cfg.time_limit_s
-        if rank == 0 and (step % cfg.checkpoint_every == 0 or step == cfg.steps or out_of_time):
+        stop = (cfg.time_limit_s is not None and time.monotonic() - started > cfg.time_limit_s) or \
+            (until is not None and step >= until)
+        if rank == 0 and (step % cfg.checkpoint_every == 0 or step == cfg.steps or stop):
             save_checkpoint(out, model, optimizer, scheduler, step, model_cfg, cfg, history)
-        if out_of_time:
+        if stop:
             break
     if bar is not None:
         bar.close()
