@@ -1,33 +1,50 @@
-"""What every benchmark script shares: machine description, memory readings, child processes, reports."""
+"""What every benchmark script shares: machine description, memory readings, child processes, command line,
+report files and markdown pieces."""
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import platform
 import resource
+import statistics
 import subprocess
 import sys
+import time
+from collections.abc import Callable
 from datetime import datetime, timezone
 from pathlib import Path
 
+import numpy as np
 import torch
 
+from datagen.pipeline import software_info
+
 HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
 REPORTS = HERE / "reports"
 
 
+# ------------------------------------------------------------------------------------------------
+# The machine and its load
+
+
 def machine_info() -> dict:
+    """CPU, software versions, torch threads, git revision, load average and date of a measurement."""
     models = [line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
               if line.startswith("model name")] if Path("/proc/cpuinfo").exists() else []
-    try:
-        revision = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                  cwd=HERE).stdout.strip()
-    except OSError:
-        revision = "unknown"
-    return {"cpu_model": models[0] if models else platform.processor(), "cpu_count": os.cpu_count(),
-            "platform": platform.platform(), "python": platform.python_version(), "torch": torch.__version__,
-            "torch_threads": torch.get_num_threads(), "git_revision": revision or "unknown",
-            "load_average": list(os.getloadavg()), "date": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return {"cpu_model": models[0] if models else platform.processor() or "unknown", "cpu_count": os.cpu_count(),
+            "usable_cpus": usable, "platform": platform.platform(), "python": platform.python_version(),
+            "numpy": np.__version__, "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
+            "torch_interop_threads": torch.get_num_interop_threads(),
+            "git_revision": software_info()["git_revision"], "load_average": list(os.getloadavg()),
+            "date": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+
+
+def load_average() -> float | None:
+    """1-minute load average (None where the platform has none)."""
+    return os.getloadavg()[0] if hasattr(os, "getloadavg") else None
 
 
 def rss_mb() -> float:
@@ -40,6 +57,14 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
 
 
+# ------------------------------------------------------------------------------------------------
+# Measuring
+
+
+def median(values) -> float:
+    return float(statistics.median(values))
+
+
 def run_child(script: Path, config: dict, env: dict | None = None) -> dict:
     """Run ``script --child JSON`` in a fresh process (a clean peak-memory reading); its last stdout line is JSON."""
     command = [sys.executable, str(script), "--child", json.dumps(config)]
@@ -49,10 +74,89 @@ def run_child(script: Path, config: dict, env: dict | None = None) -> dict:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
+def measurement_header(mode: str, command: str, plan: dict) -> dict:
+    """The fields a sectioned report opens with; ``load_average`` gets an entry per section."""
+    return {"mode": mode, "command": command, "date_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "machine": machine_info(), "load_average": {"before": load_average()}, "plan": plan}
+
+
+def run_sections(results: dict, sections: tuple, args: tuple, warm_up: Callable[[], None]) -> None:
+    """Warm up, then ``results[key] = fn(*args)`` for each (key, title, fn) of ``sections``.
+
+    Prints progress, records the load average after each section and the seconds of it all
+    (warm-up included) as ``benchmark_seconds``.
+    """
+    start = time.perf_counter()
+    warm_up()
+    for key, title, fn in sections:
+        t0 = time.perf_counter()
+        print(f"[{time.perf_counter() - start:6.0f} s] {title} ...", flush=True)
+        results[key] = fn(*args)
+        results["load_average"][key] = load_average()
+        print(f"           done in {time.perf_counter() - t0:.0f} s", flush=True)
+    results["benchmark_seconds"] = time.perf_counter() - start
+
+
+# ------------------------------------------------------------------------------------------------
+# Command line and report files
+
+
+def benchmark_parser(doc: str, quick_help: str, report_only_help: str) -> argparse.ArgumentParser:
+    """A parser with the --quick and --report-only flags; its description is the first paragraph of ``doc``."""
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help=quick_help)
+    parser.add_argument("--report-only", action="store_true", help=report_only_help)
+    return parser
+
+
+def command_line(script: Path, argv: list[str] | None) -> str:
+    """The command that reproduces this run, with the script's path from the repository root."""
+    script = script.resolve()
+    shown = script.relative_to(REPO) if script.is_relative_to(REPO) else script
+    return " ".join(["python", str(shown), *(argv if argv is not None else sys.argv[1:])])
+
+
+def report_name(name: str, quick: bool) -> str:
+    """The stem of a report's files: ``name``, or ``name``_quick for a --quick run."""
+    return f"{name}_quick" if quick else name
+
+
+def write_json(path: Path, results: dict) -> None:
+    """``results`` at ``path``, indented, making its folder if needed."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(results, indent=1) + "\n")
+
+
+def load_or_measure(json_path: Path, report_only: bool, measure: Callable[[], dict]) -> dict:
+    """The results saved at ``json_path`` with --report-only; otherwise ``measure()``'s, saved there first."""
+    if report_only:
+        return json.loads(json_path.read_text())
+    results = measure()
+    write_json(json_path, results)
+    return results
+
+
+def report_main(argv: list[str] | None, *, script: Path, name: str, doc: str, quick_help: str,
+                report_only_help: str, measure: Callable[[bool, str], dict],
+                render: Callable[[dict, Path], str]) -> None:
+    """main() of a script with --quick, --report-only and --out-dir.
+
+    ``measure(quick, command)`` gives the results (or --report-only reads the saved JSON);
+    ``render(results, out_dir)`` writes the plots and returns the markdown.
+    """
+    parser = benchmark_parser(doc, quick_help, report_only_help)
+    parser.add_argument("--out-dir", type=Path, default=REPORTS, help="where the report goes")
+    args = parser.parse_args(argv)
+    json_path = args.out_dir / f"{report_name(name, args.quick)}.json"
+    results = load_or_measure(json_path, args.report_only, lambda: measure(args.quick, command_line(script, argv)))
+    md_path = json_path.with_suffix(".md")
+    md_path.write_text(render(results, args.out_dir))
+    print(f"wrote {json_path}, {md_path}")
+
+
 def write_report(stem: Path, results: dict, markdown: str) -> None:
     """``stem``.json and ``stem``.md (plots are written beside them by the caller)."""
-    stem.parent.mkdir(parents=True, exist_ok=True)
-    stem.with_suffix(".json").write_text(json.dumps(results, indent=1) + "\n")
+    write_json(stem.with_suffix(".json"), results)
     stem.with_suffix(".md").write_text(markdown)
     print(f"wrote {stem}.md")
 
@@ -66,3 +170,43 @@ def pyplot():
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     return plt
+
+
+# ------------------------------------------------------------------------------------------------
+# Markdown
+
+
+def fmt(value, digits=2) -> str:
+    """``value`` with ``digits`` decimals; "identical" for None (an error of zero)."""
+    return "identical" if value is None else f"{value:.{digits}f}"
+
+
+def table(headers: list[str], rows: list[list]) -> list[str]:
+    lines = ["| " + " | ".join(headers) + " |", "|" + "|".join("---" for _ in headers) + "|"]
+    return lines + ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+
+
+def bullets(lines: list[str]) -> list[str]:
+    return [f"- {line}" for line in lines]
+
+
+def reproduce(command: str) -> list[str]:
+    """Markdown lines giving the command that reproduces a report."""
+    return ["Reproduce from the repository root:", "", "```bash", command, "```"]
+
+
+def load_note(results: dict, run_cpus: int, busy_verdict: str) -> str:
+    """The 1-minute load average around a sectioned run, and whether other work competed for the CPUs.
+
+    ``run_cpus``: how many CPUs the run itself keeps busy; ``busy_verdict``: the sentence for a busy machine.
+    """
+    load = results["load_average"]
+    if load["before"] is None:
+        return "Load average: not available on this platform."
+    cpus = results["machine"]["usable_cpus"]
+    during = {k: v for k, v in load.items() if k != "before"}
+    busy = load["before"] > 0.5 * cpus or max(during.values()) > cpus + 1.0
+    return (f"1-minute load average {load['before']:.2f} before the run and "
+            + ", ".join(f"{v:.2f} after {k}" for k, v in during.items())
+            + f" (this run alone keeps about {run_cpus} busy): "
+            + (busy_verdict if busy else "the machine was otherwise idle."))

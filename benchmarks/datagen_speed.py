@@ -15,33 +15,30 @@ tables give medians over repeats.
 """
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import multiprocessing as mp
 import os
-import platform
-import statistics
 import sys
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass
-from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from datagen.cameras import sample_views
-from datagen.generators import procedural
-from datagen.generators.base import STREAM_CAMERAS, STREAM_LATENT, subject_rng
-from datagen.generators.procedural import ProceduralConfig, ProceduralHeads, sample_params
-from datagen.pipeline import JobSpec, run_sample, software_info
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from benchmarks.common import (bullets, fmt, load_note, measurement_header, median, pyplot,  # noqa: E402
+                               report_main, report_name, reproduce, run_sections, table)
+from datagen.cameras import sample_views  # noqa: E402
+from datagen.generators import procedural  # noqa: E402
+from datagen.generators.base import STREAM_CAMERAS, STREAM_LATENT, subject_rng  # noqa: E402
+from datagen.generators.procedural import ProceduralConfig, ProceduralHeads, sample_params  # noqa: E402
+from datagen.pipeline import JobSpec, run_sample, software_info  # noqa: E402
 
-HERE = Path(__file__).resolve().parent
-REPO = HERE.parent
+NAME = "datagen_speed"
 SEED = 0
 VIEWS = 32
 PROTOCOL = "360"
@@ -140,10 +137,6 @@ def render(gen: ProceduralHeads, subject, views, resolution: int):
         out = gen.render(subject, views, resolution)
         seconds = time.perf_counter() - start
     return out, seconds, dict(stages)
-
-
-def median(values) -> float:
-    return float(statistics.median(values))
 
 
 def warm_up() -> None:
@@ -370,37 +363,10 @@ SECTIONS = (("one_subject", "one 32-view 128 px subject", one_subject),
             ("grid", "bake grid resolution", grid_scaling))
 
 
-def load_average():
-    """1-minute load average (None where the platform has none)."""
-    return os.getloadavg()[0] if hasattr(os, "getloadavg") else None
-
-
-def machine_info() -> dict:
-    cpu_model = platform.processor() or "unknown"
-    if Path("/proc/cpuinfo").exists():
-        models = [line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                  if line.startswith("model name")]
-        cpu_model = models[0] if models else cpu_model
-    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return {"cpu_model": cpu_model, "cpu_count": os.cpu_count(), "usable_cpus": usable,
-            "platform": platform.platform(), "python": platform.python_version(), "numpy": np.__version__,
-            "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
-            "torch_interop_threads": torch.get_num_interop_threads(),
-            "git_revision": software_info()["git_revision"]}
-
-
-def measure(plan: Plan, mode: str, command: str) -> dict:
-    results = {"mode": mode, "command": command, "date_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-               "machine": machine_info(), "load_average": {"before": load_average()}, "plan": asdict(plan)}
-    start = time.perf_counter()
-    warm_up()
-    for key, title, fn in SECTIONS:
-        t0 = time.perf_counter()
-        print(f"[{time.perf_counter() - start:6.0f} s] {title} ...", flush=True)
-        results[key] = fn(plan)
-        results["load_average"][key] = load_average()
-        print(f"           done in {time.perf_counter() - t0:.0f} s", flush=True)
-    results["benchmark_seconds"] = time.perf_counter() - start
+def measure(quick: bool, command: str) -> dict:
+    plan = QUICK if quick else FULL
+    results = measurement_header("quick" if quick else "default", command, asdict(plan))
+    run_sections(results, SECTIONS, (plan,), warm_up)
     return results
 
 
@@ -538,36 +504,6 @@ def grid_conclusions(results: dict) -> list[str]:
 # ------------------------------------------------------------------------------------------------
 # Markdown
 
-def fmt(value, digits=2) -> str:
-    if value is None:
-        return "identical"
-    return f"{value:.{digits}f}"
-
-
-def table(headers: list[str], rows: list[list]) -> list[str]:
-    lines = ["| " + " | ".join(headers) + " |", "|" + "|".join("---" for _ in headers) + "|"]
-    return lines + ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
-
-
-def bullets(lines: list[str]) -> list[str]:
-    return [f"- {line}" for line in lines]
-
-
-def load_note(results: dict) -> str:
-    """The 1-minute load average around the run, and whether other work competed for the CPUs."""
-    load = results["load_average"]
-    if load["before"] is None:
-        return "Load average: not available on this platform."
-    cpus = results["machine"]["usable_cpus"]
-    during = {k: v for k, v in load.items() if k != "before"}
-    busy = load["before"] > 0.5 * cpus or max(during.values()) > cpus + 1.0
-    return (f"1-minute load average {load['before']:.2f} before the run and "
-            + ", ".join(f"{v:.2f} after {k}" for k, v in during.items())
-            + f" (this run alone keeps about {cpus} busy): "
-            + ("**other work competed for the CPUs, so the times are inflated**." if busy
-               else "the machine was otherwise idle."))
-
-
 def machine_section(results: dict) -> list[str]:
     m = results["machine"]
     return [
@@ -576,13 +512,9 @@ def machine_section(results: dict) -> list[str]:
         f"{m['torch_threads']} intra-op / {m['torch_interop_threads']} inter-op threads, Python {m['python']}, "
         f"numpy {m['numpy']}, {m['platform']}, git {m['git_revision']}.",
         "",
-        load_note(results),
+        load_note(results, m["usable_cpus"], "**other work competed for the CPUs, so the times are inflated**."),
         "",
-        "Reproduce from the repository root:",
-        "",
-        "```bash",
-        results["command"],
-        "```",
+        *reproduce(results["command"]),
         "",
         "Wall time by `time.perf_counter` after a warm-up subject; tables give medians over repeats "
         "(over subjects where a subject is rendered once). Stage times come from wrapping the procedural "
@@ -671,7 +603,7 @@ def markdown(results: dict, plots: list[str]) -> str:
 
 
 def results_name(results: dict) -> str:
-    return "datagen_speed_quick" if results["mode"] == "quick" else "datagen_speed"
+    return report_name(NAME, results["mode"] == "quick")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -679,14 +611,10 @@ def results_name(results: dict) -> str:
 
 def write_plots(results: dict, out_dir: Path) -> list[str]:
     """PNG plots beside the report; returns their file names ([] without matplotlib)."""
-    try:
-        import matplotlib
-    except ImportError:
+    plt = pyplot()
+    if plt is None:
         print("matplotlib is not installed: skipping the plots (pip install matplotlib)")
         return []
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     stem = results_name(results)
     plots = {f"{stem}_psnr_vs_time.png": plot_psnr_vs_time, f"{stem}_render_breakdown.png": plot_render_breakdown,
              f"{stem}_resolution.png": plot_resolution, f"{stem}_grid.png": plot_grid}
@@ -759,26 +687,10 @@ def plot_grid(results: dict, ax) -> None:
 # ------------------------------------------------------------------------------------------------
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="few repeats and small sizes (under 2 minutes)")
-    parser.add_argument("--report-only", action="store_true",
-                        help="measure nothing: rewrite the markdown and plots from the existing JSON")
-    parser.add_argument("--out-dir", type=Path, default=HERE / "reports", help="where the report goes")
-    args = parser.parse_args(argv)
-    mode = "quick" if args.quick else "default"
-    args.out_dir.mkdir(parents=True, exist_ok=True)
-    json_path = args.out_dir / f"{results_name({'mode': mode})}.json"
-    if args.report_only:
-        results = json.loads(json_path.read_text())
-    else:
-        script = Path(__file__).resolve()
-        shown = script.relative_to(REPO) if script.is_relative_to(REPO) else script
-        command = " ".join(["python", str(shown), *(argv if argv is not None else sys.argv[1:])])
-        results = measure(QUICK if args.quick else FULL, mode, command)
-        json_path.write_text(json.dumps(results, indent=1) + "\n")
-    md_path = json_path.with_suffix(".md")
-    md_path.write_text(markdown(results, write_plots(results, args.out_dir)))
-    print(f"wrote {json_path}, {md_path}")
+    report_main(argv, script=Path(__file__), name=NAME, doc=__doc__,
+                quick_help="few repeats and small sizes (under 2 minutes)",
+                report_only_help="measure nothing: rewrite the markdown and plots from the existing JSON",
+                measure=measure, render=lambda results, out_dir: markdown(results, write_plots(results, out_dir)))
 
 
 if __name__ == "__main__":

@@ -20,29 +20,24 @@ over repeats; (3) samples per ray against error, against a 4x-samples reference.
 """
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import os
-import platform
-import statistics
 import sys
 import time
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass
-from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from datagen.cameras import sample_views
-from datagen.generators import GANS, make_generator
-from datagen.generators.base import STREAM_CAMERAS, subject_rng
-from datagen.pipeline import software_info
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from benchmarks.common import (REPO, bullets, fmt, load_note, measurement_header, median, pyplot,  # noqa: E402
+                               report_main, report_name, reproduce, run_sections, table)
+from datagen.cameras import sample_views  # noqa: E402
+from datagen.generators import GANS, make_generator  # noqa: E402
+from datagen.generators.base import STREAM_CAMERAS, subject_rng  # noqa: E402
 
-HERE = Path(__file__).resolve().parent
-REPO = HERE.parent
+NAME = "gan_speed"
 SHARED = Path(os.environ.get("PANOLAM_SHARED", REPO.parent / "shared"))
 SEED = 0
 RESOLUTION = 128
@@ -113,10 +108,6 @@ def timed(fn, *args):
     start = time.perf_counter()
     out = fn(*args)
     return out, time.perf_counter() - start
-
-
-def median(values) -> float:
-    return float(statistics.median(values))
 
 
 def warm_up(generators: dict) -> None:
@@ -251,24 +242,6 @@ SECTIONS = (("throughput", "1+2. throughput and amortization", throughput),
             ("samples", "3. samples per ray", sweep))
 
 
-def load_average():
-    """1-minute load average (None where the platform has none)."""
-    return os.getloadavg()[0] if hasattr(os, "getloadavg") else None
-
-
-def machine_info() -> dict:
-    cpu_model = platform.processor() or "unknown"
-    if Path("/proc/cpuinfo").exists():
-        models = [line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                  if line.startswith("model name")]
-        cpu_model = models[0] if models else cpu_model
-    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return {"cpu_model": cpu_model, "cpu_count": os.cpu_count(), "usable_cpus": usable,
-            "platform": platform.platform(), "python": platform.python_version(), "numpy": np.__version__,
-            "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
-            "git_revision": software_info()["git_revision"]}
-
-
 def fixture_info(generators: dict) -> dict:
     """The configuration of each measured checkpoint, read from the loaded generator."""
     info = {}
@@ -281,22 +254,14 @@ def fixture_info(generators: dict) -> dict:
     return info
 
 
-def measure(plan: Plan, mode: str, command: str) -> dict:
+def measure(quick: bool, command: str) -> dict:
+    plan = QUICK if quick else FULL
     generators, notes = load_generators()
     if not generators:
         sys.exit("no GAN fixture checkpoint found; nothing to measure")
-    results = {"mode": mode, "command": command, "date_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-               "machine": machine_info(), "load_average": {"before": load_average()}, "plan": asdict(plan),
+    results = {**measurement_header("quick" if quick else "default", command, asdict(plan)),
                "fixtures": fixture_info(generators), "notes": notes}
-    start = time.perf_counter()
-    warm_up(generators)
-    for key, title, fn in SECTIONS:
-        t0 = time.perf_counter()
-        print(f"[{time.perf_counter() - start:6.0f} s] {title} ...", flush=True)
-        results[key] = fn(generators, plan)
-        results["load_average"][key] = load_average()
-        print(f"           done in {time.perf_counter() - t0:.0f} s", flush=True)
-    results["benchmark_seconds"] = time.perf_counter() - start
+    run_sections(results, SECTIONS, (generators, plan), lambda: warm_up(generators))
     return results
 
 
@@ -380,35 +345,6 @@ def sample_conclusions(results: dict) -> list[str]:
 # ------------------------------------------------------------------------------------------------
 # Markdown
 
-def fmt(value, digits=2) -> str:
-    return "identical" if value is None else f"{value:.{digits}f}"
-
-
-def table(headers: list[str], rows: list[list]) -> list[str]:
-    lines = ["| " + " | ".join(headers) + " |", "|" + "|".join("---" for _ in headers) + "|"]
-    return lines + ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
-
-
-def bullets(lines: list[str]) -> list[str]:
-    return [f"- {line}" for line in lines]
-
-
-def load_note(results: dict) -> str:
-    """The 1-minute load average around the run, and whether other work competed for the CPUs."""
-    load = results["load_average"]
-    if load["before"] is None:
-        return "Load average: not available on this platform."
-    cpus = results["machine"]["usable_cpus"]
-    during = {k: v for k, v in load.items() if k != "before"}
-    busy = load["before"] > 0.5 * cpus or max(during.values()) > cpus + 1.0
-    return (f"1-minute load average {load['before']:.2f} before the run and "
-            + ", ".join(f"{v:.2f} after {k}" for k, v in during.items())
-            + f" (this run alone keeps about {results['machine']['torch_threads']} busy): "
-            + ("**other work competed for the CPUs**: absolute times are inflated and noisy; the ratios, measured "
-               "side by side with the arms interleaved, are the numbers to trust." if busy
-               else "the machine was otherwise idle."))
-
-
 def scope_section(results: dict) -> list[str]:
     rows = [[m, f["neural_rendering_resolution"], f"{f['samples'][0]}+{f['samples'][1]}", f["image_resolution"],
              f["plane_resolution"], f["sha256"][:12]] for m, f in results["fixtures"].items()]
@@ -429,13 +365,10 @@ def machine_section(results: dict) -> list[str]:
         f"{m['torch_threads']} threads, Python {m['python']}, numpy {m['numpy']}, {m['platform']}, "
         f"git {m['git_revision']}.",
         "",
-        load_note(results),
+        load_note(results, m["torch_threads"], "**other work competed for the CPUs**: absolute times are inflated "
+                  "and noisy; the ratios, measured side by side with the arms interleaved, are the numbers to trust."),
         "",
-        "Reproduce from the repository root:",
-        "",
-        "```bash",
-        results["command"],
-        "```",
+        *reproduce(results["command"]),
         "",
         "Wall time by `time.perf_counter` after one warm-up subject per model; generators built with "
         "`deterministic=True` (no stratified jitter).",
@@ -517,7 +450,7 @@ def markdown(results: dict, plot: str | None) -> str:
 
 
 def results_name(results: dict) -> str:
-    return "gan_speed_quick" if results["mode"] == "quick" else "gan_speed"
+    return report_name(NAME, results["mode"] == "quick")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -525,14 +458,10 @@ def results_name(results: dict) -> str:
 
 def write_plot(results: dict, out_dir: Path) -> str | None:
     """PSNR against time per view, per model; returns the file name (None without matplotlib)."""
-    try:
-        import matplotlib
-    except ImportError:
+    plt = pyplot()
+    if plt is None:
         print("matplotlib is not installed: skipping the plot (pip install matplotlib)")
         return None
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     name = f"{results_name(results)}_psnr_vs_time.png"
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
     for ax, key, label in zip(axes, ("psnr_rgb_db", "psnr_alpha_db"), ("image", "alpha mask")):
@@ -561,26 +490,10 @@ def plot_psnr_vs_time(results: dict, ax, key: str) -> None:
 # ------------------------------------------------------------------------------------------------
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="fewer subjects and settings (under 3 minutes)")
-    parser.add_argument("--report-only", action="store_true",
-                        help="measure nothing: rewrite the markdown and plot from the existing JSON")
-    parser.add_argument("--out-dir", type=Path, default=HERE / "reports", help="where the report goes")
-    args = parser.parse_args(argv)
-    mode = "quick" if args.quick else "default"
-    args.out_dir.mkdir(parents=True, exist_ok=True)
-    json_path = args.out_dir / f"{results_name({'mode': mode})}.json"
-    if args.report_only:
-        results = json.loads(json_path.read_text())
-    else:
-        script = Path(__file__).resolve()
-        shown = script.relative_to(REPO) if script.is_relative_to(REPO) else script
-        command = " ".join(["python", str(shown), *(argv if argv is not None else sys.argv[1:])])
-        results = measure(QUICK if args.quick else FULL, mode, command)
-        json_path.write_text(json.dumps(results, indent=1) + "\n")
-    md_path = json_path.with_suffix(".md")
-    md_path.write_text(markdown(results, write_plot(results, args.out_dir)))
-    print(f"wrote {json_path}, {md_path}")
+    report_main(argv, script=Path(__file__), name=NAME, doc=__doc__,
+                quick_help="fewer subjects and settings (under 3 minutes)",
+                report_only_help="measure nothing: rewrite the markdown and plot from the existing JSON",
+                measure=measure, render=lambda results, out_dir: markdown(results, write_plot(results, out_dir)))
 
 
 if __name__ == "__main__":

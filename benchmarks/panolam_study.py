@@ -45,11 +45,12 @@ from panolam.model import PanoLAM  # noqa: E402
 from panolam.train import TrainConfig, load_model, read_checkpoint, train  # noqa: E402
 
 OUT = HERE / "out" / "study"
-VARIANTS = {  # name: (config, fraction of training subjects)
-    "tiny": ("tiny", 1.0),
-    "no_c2f": ("tiny+no_c2f", 1.0),
-    "single_point": ("tiny+single_point", 1.0),
-    "quarter_subjects": ("tiny", 0.25),
+VARIANTS = {  # name: (config, fraction of training subjects, model overrides)
+    "tiny": ("tiny", 1.0, {}),
+    "no_c2f": ("tiny+no_c2f", 1.0, {}),
+    "single_point": ("tiny+single_point", 1.0, {}),
+    "rays_k2": ("tiny", 1.0, {"ray_samples": 2}),
+    "quarter_subjects": ("tiny", 0.25, {}),
 }
 RESOLUTION = 64
 
@@ -94,32 +95,33 @@ def evaluate_run(model, data, manifest, args, resolution: int = RESOLUTION) -> d
     return {k: r[k] for k in ("subjects", "per_view", "reconstruct_s_median", "render_ms_per_view_median")}
 
 
-def train_phase(args, data, manifest, results: dict) -> None:
+def train_phase(args, data, manifest) -> None:
+    """Train the chosen variants; each keeps its curve in ``runs/<name>/curve.json`` (so processes can share a study)."""
     cfg = train_config(args)
-    for name, (config, fraction) in VARIANTS.items():
-        if name not in args.variants:
-            continue
+    for name in args.variants:
+        config, fraction, overrides = VARIANTS[name]
         run = args.out / "runs" / name
-        rows = results.setdefault("curves", {}).setdefault(name, [])
-        model_cfg = preset(config)
+        curve_path = run / "curve.json"
+        curve = json.loads(curve_path.read_text()) if curve_path.exists() else {
+            "rows": [], "command": args.command, "machine": machine_info(), "train_config": cfg.to_dict(),
+            "model_config": preset(config, **overrides).to_dict(), "training_fraction": fraction}
+        model_cfg = preset(config, **overrides)
         used = subset_manifest(manifest, fraction, run.parent / name)
-        checkpoints = range(args.eval_every, args.steps + 1, args.eval_every) if name == "tiny" else [args.steps]
-        for stop in checkpoints:
-            done = read_checkpoint(run)["step"] if (run / "checkpoint.pt").exists() else 0
-            if done >= stop:
+        stops = range(args.eval_every, args.steps + 1, args.eval_every) if name == "tiny" else [args.steps]
+        for stop in stops:
+            if any(r["step"] == stop for r in curve["rows"]):
                 continue
+            done = read_checkpoint(run)["step"] if (run / "checkpoint.pt").exists() else 0
             t0 = time.perf_counter()
-            train(data, used, model_cfg, cfg, run, resume=done > 0, progress=False, until=stop)
-            seconds = time.perf_counter() - t0
-            row = {"step": stop, "train_s": seconds, **evaluate_run(load_model(run), data, manifest, args)}
-            rows.append(row)
-            print(f"{name} step {stop}: held-out PSNR {row['per_view']['all']['psnr']:.2f} dB ({seconds:.0f} s)",
-                  flush=True)
-            save(args, results)
-        history = read_checkpoint(run)["history"]
-        results.setdefault("history", {})[name] = [{k: h[k] for k in ("step", "loss", "psnr_dense", "seconds")}
-                                                   for h in history]
-        save(args, results)
+            if done < stop:
+                train(data, used, model_cfg, cfg, run, resume=done > 0, progress=False, until=stop)
+            row = {"step": stop, "train_s": time.perf_counter() - t0,
+                   **evaluate_run(load_model(run), data, manifest, args)}
+            curve["rows"].append(row)
+            print(f"{name} step {stop}: held-out PSNR {_psnr(row):.2f} dB ({row['train_s']:.0f} s)", flush=True)
+            curve["history"] = [{k: h[k] for k in ("step", "loss", "psnr_dense", "seconds")}
+                                for h in read_checkpoint(run)["history"]]
+            _write_json(curve_path, curve)
 
 
 class MeanColourTemplate(torch.nn.Module):
@@ -127,7 +129,7 @@ class MeanColourTemplate(torch.nn.Module):
 
     def __init__(self, model: PanoLAM, colour: torch.Tensor):
         super().__init__()
-        self.model, self.colour = model, colour
+        self.model, self.colour, self.cfg = model, colour, model.cfg
 
     def forward(self, x):
         d = self.model(x).dense
@@ -144,16 +146,15 @@ def mean_foreground_colour(data, manifest) -> torch.Tensor:
     return total / max(weight, 1.0)
 
 
-def baseline_phase(args, data, manifest, results: dict) -> None:
+def baseline_phase(args, data, manifest) -> None:
     torch.manual_seed(0)
     untrained = PanoLAM(preset("tiny")).eval()
     colour = mean_foreground_colour(data, manifest)
-    results["baselines"] = {
+    _write_json(args.out / "baselines.json", {
         "untrained": evaluate_run(untrained, data, manifest, args),
         "mean_colour_template": {**evaluate_run(MeanColourTemplate(untrained, colour), data, manifest, args),
                                  "colour": colour.tolist()},
-    }
-    save(args, results)
+    })
 
 
 def _peak_reset() -> float:
@@ -168,7 +169,7 @@ def _peak_since(base: float) -> float:
     return float("nan")
 
 
-def speed_phase(args, data, manifest, results: dict) -> None:
+def speed_phase(args, data, manifest) -> None:
     run = args.out / "runs" / "tiny"
     rows = []
     for n in args.dense_counts:
@@ -183,12 +184,27 @@ def speed_phase(args, data, manifest, results: dict) -> None:
         r = evaluate_run(model, data, manifest, args, resolution=res)
         rows.append({"axis": "render_resolution", "value": res, "peak_mb": _peak_since(base), **r})
         print(f"{res} px: PSNR {r['per_view']['all']['psnr']:.2f}", flush=True)
-    results["speed_vs_error"] = rows
-    save(args, results)
+    _write_json(args.out / "speed.json", {"machine": machine_info(), "rows": rows})
 
 
-def save(args, results: dict) -> None:
-    (args.out / "study.json").write_text(json.dumps(results, indent=1))
+def _write_json(path: Path, value) -> None:
+    """Write JSON under a temporary name, then rename (an interrupted study never leaves half a file)."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(value, indent=1))
+    tmp.replace(path)
+
+
+def load_results(args) -> dict:
+    """Everything the phases wrote under ``args.out``, as one dict for the reports."""
+    read = lambda p: json.loads(p.read_text()) if p.exists() else None  # noqa: E731
+    curves = {name: read(args.out / "runs" / name / "curve.json") for name in VARIANTS}
+    curves = {k: v for k, v in curves.items() if v}
+    speed = read(args.out / "speed.json") or {}
+    return {"machine": machine_info(), "command": args.command, "args": args.recorded,
+            "baselines": read(args.out / "baselines.json") or {},
+            "curves": {k: v["rows"] for k, v in curves.items()},
+            "history": {k: v.get("history", []) for k, v in curves.items()},
+            "speed_vs_error": speed.get("rows", []), "speed_machine": speed.get("machine")}
 
 
 # -- reports --------------------------------------------------------------------------------------------------
@@ -335,21 +351,22 @@ def main(argv=None) -> None:
     parser.add_argument("--phase", nargs="+", default=["data", "baselines", "train", "speed", "report"],
                         choices=["data", "baselines", "train", "speed", "report"])
     parser.add_argument("--resume-data", action="store_true", help="finish an interrupted dataset")
+    parser.add_argument("--threads", type=int, help="torch threads (two studies of 1 thread each share 2 cores well)")
     args = parser.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / "study.json"
-    results = json.loads(path.read_text()) if path.exists() else {}
-    results.update(machine=machine_info(), command="python benchmarks/panolam_study.py " + " ".join(argv or sys.argv[1:]),
-                   args={k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()})
+    args.command = "python benchmarks/panolam_study.py " + " ".join(argv or sys.argv[1:])
+    args.recorded = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
     data, manifest = data_phase(args) if "data" in args.phase else (args.out / "heads", args.out / "heads-v1.json")
     if "baselines" in args.phase:
-        baseline_phase(args, data, manifest, results)
+        baseline_phase(args, data, manifest)
     if "train" in args.phase:
-        train_phase(args, data, manifest, results)
+        train_phase(args, data, manifest)
     if "speed" in args.phase:
-        speed_phase(args, data, manifest, results)
-    save(args, results)
-    reports(results)
+        speed_phase(args, data, manifest)
+    if "report" in args.phase:
+        reports(load_results(args))
 
 
 if __name__ == "__main__":

@@ -26,10 +26,7 @@ import argparse
 import json
 import math
 import os
-import platform
-import resource
 import statistics
-import subprocess
 import sys
 import time
 from datetime import datetime, timezone
@@ -37,11 +34,13 @@ from pathlib import Path
 
 import torch
 
-from datagen.cameras import camera_position, fov_to_focal, intrinsics, look_at, pixel_intrinsics
-from panolam.rasterizer import ALPHA_MAX, ALPHA_MIN, BLOCK, T_MIN, bin_gaussians, project, rasterize, tile_ranges
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from benchmarks.common import (REPORTS, benchmark_parser, command_line, load_or_measure, machine_info,  # noqa: E402
+                               peak_rss_mb, pyplot, report_name, reproduce, rss_mb, run_child)
+from datagen.cameras import camera_position, fov_to_focal, intrinsics, look_at, pixel_intrinsics  # noqa: E402
+from panolam.rasterizer import (ALPHA_MAX, ALPHA_MIN, BLOCK, T_MIN, bin_gaussians, project, rasterize,  # noqa: E402
+                                tile_ranges)
 
-HERE = Path(__file__).resolve().parent
-REPORTS = HERE / "reports"
 NAME = "rasterizer_speed"
 GOAL_SECONDS = 0.5           # the issue's goal: forward + backward, 20K Gaussians, 256 x 256
 GOAL_CONFIG = (20_000, 256)
@@ -111,15 +110,6 @@ def dense_tiles_rasterize(means, quats, scales, opacities, colors, viewmat, K, w
 # One configuration, in a fresh process
 
 
-def rss_mb() -> float:
-    """Current resident set size (MiB), from /proc/self/statm."""
-    return int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2 ** 20
-
-
-def peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
-
-
 def child(config: dict) -> dict:
     """Time forward and backward passes of one configuration and measure its peak memory."""
     if config["variant"] == "phases":
@@ -158,13 +148,6 @@ def child(config: dict) -> dict:
             bins = bin_gaussians(proj, r, r)
         out["block_pairs"] = int(bins.gaussian_ids.numel())
     return out
-
-
-def run_child(config: dict) -> dict:
-    command = [sys.executable, str(Path(__file__).resolve()), "--child", json.dumps(config)]
-    env = dict(os.environ, **({"OMP_WAIT_POLICY": config["omp_wait_policy"]} if config.get("omp_wait_policy") else {}))
-    done = subprocess.run(command, capture_output=True, text=True, check=True, env=env)
-    return json.loads(done.stdout.strip().splitlines()[-1])
 
 
 def phase_breakdown(repeats: int) -> dict:
@@ -218,19 +201,6 @@ def dense_configurations(plan: dict) -> list[dict]:
             for n in plan["dense_counts"]]
 
 
-def machine_info() -> dict:
-    models = [line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-              if line.startswith("model name")] if Path("/proc/cpuinfo").exists() else []
-    try:
-        revision = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                  cwd=HERE).stdout.strip()
-    except OSError:
-        revision = "unknown"
-    return {"cpu_model": models[0] if models else platform.processor(), "cpu_count": os.cpu_count(),
-            "platform": platform.platform(), "python": platform.python_version(), "torch": torch.__version__,
-            "torch_threads": torch.get_num_threads(), "git_revision": revision or "unknown"}
-
-
 def measure(plan: dict, mode: str, command: str) -> dict:
     results = {"mode": mode, "command": command, "machine": machine_info(), "plan": plan,
                "date_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -240,7 +210,9 @@ def measure(plan: dict, mode: str, command: str) -> dict:
     jobs = [c for _ in range(plan["rounds"]) for c in configurations(plan)] + dense_configurations(plan)
     for config in jobs:
         print(f"[{time.perf_counter() - start:5.0f} s] {config}", flush=True)
-        runs.setdefault(json.dumps(config), []).append({**run_child(config), "load_average": os.getloadavg()[0]})
+        policy = config.get("omp_wait_policy")
+        out = run_child(Path(__file__).resolve(), config, {"OMP_WAIT_POLICY": policy} if policy else None)
+        runs.setdefault(json.dumps(config), []).append({**out, "load_average": os.getloadavg()[0]})
     for key, outs in runs.items():
         config = json.loads(key)
         if config["variant"] == "phases":
@@ -320,7 +292,7 @@ def markdown(results: dict, plot_note: str) -> str:
         f"Measured {results['date_utc']} in {results['mode']} mode ({results['benchmark_seconds'] / 60:.1f} min) on "
         f"{m['cpu_model']}, {m['cpu_count']} CPUs, torch {m['torch']} with {m['torch_threads']} threads, "
         f"Python {m['python']}, {m['platform']}, git {m['git_revision']}.", "",
-        "Reproduce from the repository root:", "", "```bash", results["command"], "```", "",
+        *reproduce(results["command"]), "",
         f"**Goal (forward + backward of 20K Gaussians at 256x256 <= {GOAL_SECONDS} s): "
         f"{'met' if met else 'not met'}** - median forward {goal['forward_median_s']:.3f} s + backward "
         f"{goal['backward_median_s']:.3f} s = {total:.3f} s with {goal['torch_threads']} threads; peak memory "
@@ -369,11 +341,8 @@ def markdown(results: dict, plot_note: str) -> str:
 
 
 def plot(results: dict, path: Path) -> str:
-    try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
+    plt = pyplot()
+    if plt is None:
         return "Plot skipped: matplotlib is not installed (`pip install matplotlib`, then `--report-only`)."
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for ax, key, rows, label in (
@@ -399,7 +368,7 @@ def plot(results: dict, path: Path) -> str:
 
 def report_stem(mode: str) -> Path:
     """benchmarks/reports/rasterizer_speed (full mode) or rasterizer_speed_quick."""
-    return REPORTS / (NAME if mode == "full" else f"{NAME}_{mode}")
+    return REPORTS / report_name(NAME, mode == "quick")
 
 
 def write_reports(results: dict) -> None:
@@ -411,26 +380,20 @@ def write_reports(results: dict) -> None:
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="a smoke run, under 2 minutes")
-    parser.add_argument("--report-only", action="store_true", help="rewrite the markdown and plot from the JSON")
+    parser = benchmark_parser(__doc__, quick_help="a smoke run, under 2 minutes",
+                              report_only_help="rewrite the markdown and plot from the JSON")
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
         print(json.dumps(child(json.loads(args.child))))
         return
     mode = "quick" if args.quick else "full"
-    json_path = report_stem(mode).with_suffix(".json")
-    if args.report_only:
-        write_reports(json.loads(json_path.read_text()))
-        return
-    command = "python benchmarks/rasterizer_speed.py" + (" --quick" if args.quick else "")
-    results = measure(QUICK if args.quick else FULL, mode, command)
-    json_path.parent.mkdir(parents=True, exist_ok=True)
-    json_path.write_text(json.dumps(results, indent=1))
+    results = load_or_measure(report_stem(mode).with_suffix(".json"), args.report_only,
+                              lambda: measure(QUICK if args.quick else FULL, mode, command_line(Path(__file__), argv)))
     write_reports(results)
-    met, total = goal_verdict(results)
-    print(f"goal ({GOAL_SECONDS} s for fwd+bwd, 20K, 256^2): {'met' if met else 'not met'} ({total:.3f} s)")
+    if not args.report_only:
+        met, total = goal_verdict(results)
+        print(f"goal ({GOAL_SECONDS} s for fwd+bwd, 20K, 256^2): {'met' if met else 'not met'} ({total:.3f} s)")
 
 
 if __name__ == "__main__":

@@ -275,8 +275,9 @@ def read_index(root) -> dict:
 
 @dataclass
 class SubjectSample:
-    """A subject read back: metadata, per view rgb (H,W,3) uint8, alpha (H,W) uint8, depth (H,W) float32,
-    and the generator's arrays by name."""
+    """A subject read back: metadata, per view rgb (H,W,3) uint8, alpha (H,W) uint8, depth (H,W) float32
+    (the decoded views, in the order asked for; depth empty when not asked for), and the generator's
+    arrays by name."""
 
     key: str
     metadata: dict
@@ -331,19 +332,20 @@ def read_fields(root, shard: int, key: str) -> dict:
         raise DatasetError(f"{path}: corrupt subject {key} ({e})") from None
 
 
-def decode_sample(key: str, fields: dict, where="") -> SubjectSample:
+def decode_sample(key: str, fields: dict, where="", views=None, depth: bool = True) -> SubjectSample:
+    """Decode a subject's raw fields: all views, or only the view indices ``views``; depth optionally."""
     try:
         meta = json.loads(fields["json"])
-        n = len(meta["views"])
-        rgb = [decode_png(fields[f"{view_name(i)}.png"]) for i in range(n)]
-        alpha = [decode_png(fields[f"{view_name(i)}.mask.png"]) for i in range(n)]
-        depth = [decode_exr(fields[f"{view_name(i)}.depth.exr"]) for i in range(n)]
+        views = range(len(meta["views"])) if views is None else views
+        rgb = [decode_png(fields[f"{view_name(i)}.png"]) for i in views]
+        alpha = [decode_png(fields[f"{view_name(i)}.mask.png"]) for i in views]
+        depths = [decode_exr(fields[f"{view_name(i)}.depth.exr"]) for i in views] if depth else []
         arrays = {name: decode_npy(fields[f"{name}.npy"]) for name in meta.get("arrays", {})}
     except KeyError as e:
         raise DatasetError(f"{where}: subject {key} lacks field {e}") from None
     except Exception as e:  # a decoder's own error: report which file and subject
         raise DatasetError(f"{where}: subject {key} does not decode ({type(e).__name__}: {e})") from None
-    return SubjectSample(key, meta, rgb, alpha, depth, arrays)
+    return SubjectSample(key, meta, rgb, alpha, depths, arrays)
 
 
 def read_subject(root, key: str) -> SubjectSample:

@@ -1,7 +1,7 @@
 """The ``panolam`` command line: train on a curated manifest, reconstruct a photo, evaluate.
 
     panolam train --data D --manifest M --config tiny --out runs/t1 [--resume] [--nproc 2]
-    panolam infer photo.jpg --ckpt runs/t1 --out head.ply [--turntable head.gif] [--views DIR]
+    panolam infer photo.jpg --ckpt runs/t1 --out head.ply [--turntable head.mp4] [--views DIR]
     panolam eval --data D --manifest M --split test --ckpt runs/t1 [--out DIR]
 
 ``python -m panolam.train`` (e.g. under ``torchrun --nproc-per-node 2``) takes the train options.
@@ -53,7 +53,7 @@ def build_parser() -> OneLineParser:
     p.add_argument("photo")
     p.add_argument("--ckpt", required=True, help="run directory or checkpoint file")
     p.add_argument("--out", help="Gaussians as a standard 3DGS .ply")
-    p.add_argument("--turntable", help="360-degree turntable, animated .gif")
+    p.add_argument("--turntable", help="360-degree turntable: .mp4 (H.264) or animated .gif")
     p.add_argument("--views", help="directory for front/left/back/right PNG views")
     p.add_argument("--resolution", type=int, default=256)
     p.add_argument("--frames", type=int, default=36)
@@ -79,7 +79,6 @@ def build_parser() -> OneLineParser:
 
 # -- train ---------------------------------------------------------------------------------------------------
 def _configs(args):
-    import torch  # noqa: F401  (fail early if the install is broken)
     from .config import preset
     from .train import TrainConfig, read_checkpoint
     overrides = {k: getattr(args, k) for k in ("steps", "batch_size", "render_resolution", "lr", "time_limit_s",

@@ -59,6 +59,7 @@ class ModelConfig:
     triplane_aggregate_dim: int = 64           # width of the aggregated tri-plane feature per point
     spherehead_checkpoint: Optional[str] = None  # frozen SphereHead decoder; None: a small trainable one
     triplane_render_resolution: int = 32       # px of the branch's own supervision image
+    triplane_render_views: Optional[int] = 2   # targets per sample it renders (None: all); its loss weighs 0.1
     triplane_render_samples: tuple = (12, 12)  # stratified, importance samples per ray
 
     def __post_init__(self):
@@ -91,7 +92,7 @@ PRESETS = {
         name="full", encoder="dinov2", encoder_layers=(5, 12, 18, 24), image_size=518, token_dim=512,
         template_vertices=5023, blocks=8, heads=16, head_hidden=512, dense_points=10000,
         triplane_resolution=64, triplane_blocks=2, ray_samples=32, triplane_aggregate_dim=256,
-        triplane_render_resolution=64, triplane_render_samples=(48, 48)),
+        triplane_render_resolution=64, triplane_render_samples=(48, 48), triplane_render_views=None),
 }
 
 ABLATIONS = {

@@ -9,10 +9,13 @@ uninterrupted run would, on any number of processes and loader workers.
 Images are (3, H, W) float32 in [0, 1] composited over white with the view's alpha (the procedural
 generator already renders on white; for GAN backgrounds this drops the background so the Gaussians,
 which model only the head, are compared on the same background). Cameras: OpenCV cam2world (4, 4)
-and normalized intrinsics (3, 3), as stored (CONVENTIONS.md).
+and normalized intrinsics (3, 3), as stored (CONVENTIONS.md). The model's input (the first view) is
+resized from the stored image to the encoder's input size, apart from the targets, which are resized
+to the render resolution: the encoder sees the same detail in training as on a photo.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass
 
@@ -45,7 +48,10 @@ def _rng(seed: int, *stream: int) -> np.random.Generator:
 
 @dataclass(frozen=True)
 class Views:
-    """Some views of one subject: images (V, 3, H, W), masks (V, 1, H, W), cam2world (V, 4, 4), K (V, 3, 3)."""
+    """Some views of one subject: images (V, 3, H, W), masks (V, 1, H, W), cam2world (V, 4, 4), K (V, 3, 3).
+
+    ``inputs`` (3, H_in, W_in): the first view at the encoder's input size, when it was asked for.
+    """
 
     key: str
     images: torch.Tensor
@@ -54,38 +60,64 @@ class Views:
     K: torch.Tensor
     yaw_deg: torch.Tensor
     planes: torch.Tensor | None = None
+    inputs: torch.Tensor | None = None
+
+    def to(self, device) -> "Views":
+        return Views(**{f.name: v.to(device) if torch.is_tensor(v) else v
+                        for f in dataclasses.fields(self) for v in [getattr(self, f.name)]})
 
 
-def load_views(root, key: str, shard: int, views=None, resolution: int | None = None) -> Views:
-    """Decode views (indices, default all) of one subject, optionally resized to ``resolution`` px (area)."""
-    sample = decode_sample(key, read_fields(root, shard, key), where=str(root))
+def resized(images: torch.Tensor, size: int) -> torch.Tensor:
+    """(N, C, H, W) -> (N, C, size, size): area average to shrink, antialiased bilinear to enlarge."""
+    if images.shape[-2:] == (size, size):
+        return images
+    if size < images.shape[-1]:
+        return F.interpolate(images, size=(size, size), mode="area")
+    return F.interpolate(images, size=(size, size), mode="bilinear", align_corners=False)
+
+
+def load_views(root, key: str, shard: int, views=None, resolution: int | None = None,
+               input_resolution: int | None = None) -> Views:
+    """Decode views (indices, default all) of one subject, optionally resized to ``resolution`` px.
+
+    With ``input_resolution``, ``inputs`` holds the first of these views resized from the stored image.
+    """
+    fields = read_fields(root, shard, key)
+    if views is None:
+        views = range(len(json.loads(fields["json"])["views"]))
+    views = [int(v) for v in views]
+    sample = decode_sample(key, fields, where=str(root), views=views, depth=False)
     records = sample.metadata["views"]
-    views = list(range(len(records))) if views is None else [int(v) for v in views]
-    rgb = torch.from_numpy(np.stack([sample.rgb[v] for v in views])).float().div(255).permute(0, 3, 1, 2)
-    alpha = torch.from_numpy(np.stack([sample.alpha[v] for v in views])).float().div(255)
+    rgb = torch.from_numpy(np.stack(sample.rgb)).float().div(255).permute(0, 3, 1, 2)
+    alpha = torch.from_numpy(np.stack(sample.alpha)).float().div(255)
     alpha = alpha.reshape(len(views), 1, *alpha.shape[-2:])
     bg = torch.tensor(BACKGROUND).view(1, 3, 1, 1)
     images = rgb * alpha + bg * (1 - alpha)
-    if resolution is not None and resolution != images.shape[-1]:
-        images = F.interpolate(images, size=(resolution, resolution), mode="area")
-        alpha = F.interpolate(alpha, size=(resolution, resolution), mode="area")
+    inputs = None if input_resolution is None else resized(images[:1], input_resolution)[0].clamp(0, 1)
+    if resolution is not None:
+        images, alpha = resized(images, resolution), resized(alpha, resolution)
     cam2world = torch.tensor([records[v]["cam2world"] for v in views], dtype=torch.float32)
     K = torch.tensor([records[v]["intrinsics"] for v in views], dtype=torch.float32)
     yaw = torch.tensor([records[v]["yaw_deg"] for v in views], dtype=torch.float32)
     planes = sample.arrays.get("planes")
     planes = None if planes is None else torch.from_numpy(np.asarray(planes, dtype=np.float32))
-    return Views(key, images.clamp(0, 1), alpha.clamp(0, 1), cam2world, K, yaw, planes)
+    return Views(key, images.clamp(0, 1), alpha.clamp(0, 1), cam2world, K, yaw, planes, inputs)
+
+
+def view_yaws(root, key: str, shard: int) -> np.ndarray:
+    """The yaw (deg) of each stored view of a subject, from its metadata alone."""
+    return np.array([v["yaw_deg"] for v in json.loads(read_fields(root, shard, key)["json"])["views"]])
 
 
 class TrainingSamples(torch.utils.data.Dataset):
     """Sample index g -> N_v views of one accepted training subject (the first view is the input)."""
 
-    def __init__(self, root, manifest_path, split: str, views_per_sample: int, resolution: int, seed: int):
+    def __init__(self, root, manifest_path, split: str, views_per_sample: int, resolution: int, seed: int,
+                 input_resolution: int | None = None):
         self.root, self.seed = root, seed
         self.subjects = accepted_subjects(read_manifest(manifest_path), split)
-        self.views_per_sample, self.resolution = views_per_sample, resolution
-        key, shard = self.subjects[0]
-        self.n_views = len(json.loads(read_fields(root, shard, key)["json"])["views"])
+        self.views_per_sample, self.resolution, self.input_resolution = views_per_sample, resolution, input_resolution
+        self.n_views = len(view_yaws(root, *self.subjects[0]))
         if views_per_sample > self.n_views:
             raise UserError(f"{views_per_sample} views per sample, but subjects have {self.n_views}")
 
@@ -101,12 +133,13 @@ class TrainingSamples(torch.utils.data.Dataset):
 
     def __getitem__(self, g: int) -> Views:
         (key, shard), views = self.pick(g)
-        return load_views(self.root, key, shard, views, self.resolution)
+        return load_views(self.root, key, shard, views, self.resolution, self.input_resolution)
 
 
 def collate(items: list[Views]) -> Views:
-    """Stack equally shaped Views into a batch (every tensor gains a leading B)."""
-    planes = [v.planes for v in items]
-    return Views(",".join(v.key for v in items), *(torch.stack([getattr(v, f) for v in items])
-                                                    for f in ("images", "masks", "cam2world", "K", "yaw_deg")),
-                 None if any(p is None for p in planes) else torch.stack(planes))
+    """Stack equally shaped Views into a batch (every tensor gains a leading B; a field any item lacks is None)."""
+    def stacked(name):
+        values = [getattr(v, name) for v in items]
+        return None if any(x is None for x in values) else torch.stack(values)
+    return Views(",".join(v.key for v in items), **{f.name: stacked(f.name) for f in dataclasses.fields(Views)
+                                                     if f.name != "key"})

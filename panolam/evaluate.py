@@ -21,7 +21,7 @@ import torch
 
 from datagen.shards import atomic_write
 
-from .data import accepted_subjects, load_views
+from .data import accepted_subjects, load_views, view_yaws
 from .metrics import psnr, ssim
 from .model import PanoLAM
 from .rasterizer import render_views
@@ -61,14 +61,14 @@ def evaluate(model: PanoLAM, data, manifest: dict, split: str = "test", resoluti
     subjects = accepted_subjects(manifest, split)[:limit]
     rows, skipped, rec_times, render_times = [], [], [], []
     for key, shard in subjects:
-        meta_views = load_views(data, key, shard, resolution=resolution)
-        picked = nearest_views(meta_views.yaw_deg.numpy())
+        picked = nearest_views(view_yaws(data, key, shard))
         if picked is None:
             skipped.append(key)
             continue
         idx = list(picked.values())
-        images = meta_views.images[idx].to(device)
-        x = images[:1]
+        meta_views = load_views(data, key, shard, idx, resolution, input_resolution=model.cfg.image_size)
+        images = meta_views.images.to(device)
+        x = meta_views.inputs[None].to(device)
         t0 = time.perf_counter()
         rec = model(x)
         _sync(device)
@@ -77,7 +77,7 @@ def evaluate(model: PanoLAM, data, manifest: dict, split: str = "test", resoluti
                                             rec.dense.opacities, rec.dense.colors)))
         res = images.shape[-1]
         t0 = time.perf_counter()
-        rgb, _, _ = render_views(g, meta_views.cam2world[idx][None].to(device), meta_views.K[idx][None].to(device),
+        rgb, _, _ = render_views(g, meta_views.cam2world[None].to(device), meta_views.K[None].to(device),
                                  res, background=images.new_ones(3))
         _sync(device)
         render_times.append((time.perf_counter() - t0) / len(idx))
@@ -129,7 +129,7 @@ def write_report(result: dict, out: Path, title: str, notes: list[str] = ()) -> 
     for name, m in result["per_view"].items():
         lines.append(f"| {name} | " + " | ".join(fmt(m[k]) for k in ("psnr", "ssim", "lpips", "csim", "apd")) + " |")
     counted = result["per_view"]["all"]["counted"]
-    lines += ["", f"Counted views: " + ", ".join(f"{k} {v}" for k, v in counted.items()) + ".",
+    lines += ["", "Counted views: " + ", ".join(f"{k} {v}" for k, v in counted.items()) + ".",
               f"Reconstruction {result['reconstruct_s_median'] * 1000:.1f} ms (median, one forward pass); "
               f"render {result['render_ms_per_view_median']:.1f} ms per view (median).", ""]
     lines += list(notes)

@@ -4,7 +4,7 @@ Gaussians whose opacity is below ``prune_opacity`` are dropped before export; th
 is measured (PSNR of the pruned against the unpruned turntable renders) and reported. Below 1/255
 the rasterizer never draws a Gaussian, so that threshold is lossless. Outputs are written under a
 temporary name and renamed, so an interrupted run leaves nothing half-written. Turntables are
-animated GIFs.
+H.264 MP4 (through PyAV's bundled FFmpeg) or animated GIF, by the file's suffix.
 """
 from __future__ import annotations
 
@@ -89,12 +89,35 @@ def to_uint8(images: torch.Tensor) -> list[np.ndarray]:
     return [(x.permute(1, 2, 0).cpu().numpy() * 255 + 0.5).astype(np.uint8) for x in images]
 
 
+TURNTABLE_FORMATS = (".mp4", ".gif")
+
+
+def _mp4(frames: list[np.ndarray], fps: int) -> bytes:
+    """H.264 (yuv420p, CRF 18) in MP4; odd frame sizes are padded by one edge pixel."""
+    import av
+    h, w = frames[0].shape[:2]
+    buf = io.BytesIO()
+    with av.open(buf, mode="w", format="mp4") as container:
+        stream = container.add_stream("libx264", rate=fps)
+        stream.width, stream.height, stream.pix_fmt = w + w % 2, h + h % 2, "yuv420p"
+        stream.options = {"crf": "18"}
+        for frame in frames:
+            frame = np.pad(frame, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
+            container.mux(stream.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(frame), format="rgb24")))
+        container.mux(stream.encode())
+    return buf.getvalue()
+
+
 def write_turntable(path: Path, frames: list[np.ndarray], fps: int = 24) -> None:
-    """An animated GIF of the frames."""
-    images = [Image.fromarray(f) for f in frames]
+    """The frames as an MP4 video or an animated GIF, by ``path``'s suffix."""
+    if path.suffix.lower() == ".mp4":
+        data = _mp4(frames, fps)
+    else:
+        images = [Image.fromarray(f) for f in frames]
+        data = _encoded(images[0], format="GIF", save_all=True, append_images=images[1:], duration=int(1000 / fps),
+                        loop=0)
     path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(path, _encoded(images[0], format="GIF", save_all=True, append_images=images[1:],
-                                duration=int(1000 / fps), loop=0))
+    atomic_write(path, data)
 
 
 def run(model: PanoLAM, image: np.ndarray, out_ply: Path | None, turntable: Path | None = None,
@@ -103,8 +126,8 @@ def run(model: PanoLAM, image: np.ndarray, out_ply: Path | None, turntable: Path
     """Reconstruct one prepared image and write the requested outputs."""
     if out_ply is not None and out_ply.suffix.lower() != ".ply":
         raise UserError(f"{out_ply}: the Gaussians are written as a .ply file")
-    if turntable is not None and turntable.suffix.lower() != ".gif":
-        raise UserError(f"{turntable}: turntables are written as animated GIF; name it *.gif")
+    if turntable is not None and turntable.suffix.lower() not in TURNTABLE_FORMATS:
+        raise UserError(f"{turntable}: a turntable is written as {' or '.join(TURNTABLE_FORMATS)}; name it so")
     full, seconds = reconstruct(model, image)
     kept = prune(full, prune_opacity)
     views = turntable_views(frames)

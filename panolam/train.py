@@ -3,7 +3,9 @@
 Per sample, N_v views of one subject: the first is the input, the others are the targets
 (:mod:`panolam.data`). Loss (paper Eq. 9): ``lambda_3 L_rgb(G) + lambda_4 L_rgb(ST) + lambda_5 L_mask
 + lambda_6 L_st`` with ``L_rgb = lambda_1 L1 + lambda_2 L_perceptual`` on the coarse and dense
-Gaussian renders (G) and on the tri-plane branch's own render (ST, over black at its resolution),
+Gaussian renders (G) and on the tri-plane branch's own render (ST, over black at its resolution,
+of the first ``triplane_render_views`` targets: the views are drawn at random, so any few are a fair
+sample, and this volume render costs more than all the Gaussian renders together),
 ``L_mask`` the L1 of coarse and dense alpha against the masks, ``L_st`` the L1 between the
 predicted planes and the GAN's planes when the dataset stores them (``--save-planes``). The
 perceptual term is LPIPS when its weights are given, otherwise D-SSIM ``(1 - SSIM) / 2`` (the log
@@ -18,7 +20,6 @@ torch.distributed (gloo on CPU, nccl on CUDA); each takes its own slice of every
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import os
 import time
@@ -33,7 +34,7 @@ import torch.nn.functional as F
 from datagen.errors import UserError
 
 from .config import ModelConfig
-from .data import BACKGROUND, TrainingSamples, Views, collate
+from .data import BACKGROUND, TrainingSamples, Views, collate, resized
 from .metrics import psnr, ssim
 from .model import PanoLAM, Reconstruction
 from .rasterizer import render_views
@@ -105,7 +106,8 @@ def _channels_first(x: torch.Tensor) -> torch.Tensor:
 def compute_losses(model: PanoLAM, batch: Views, cfg: TrainConfig, perceptual: Perceptual, autocast: bool = False):
     """Forward the inputs, render the targets; returns (total loss, named parts, renders for logging)."""
     core = model.module if hasattr(model, "module") else model
-    inputs, targets, masks = batch.images[:, 0], batch.images[:, 1:], batch.masks[:, 1:]
+    inputs = batch.inputs if batch.inputs is not None else batch.images[:, 0]
+    targets, masks = batch.images[:, 1:], batch.masks[:, 1:]
     cam2world, K = batch.cam2world[:, 1:], batch.K[:, 1:]
     with torch.autocast(inputs.device.type, dtype=torch.bfloat16, enabled=autocast):
         rec: Reconstruction = model(inputs)
@@ -127,9 +129,9 @@ def compute_losses(model: PanoLAM, batch: Views, cfg: TrainConfig, perceptual: P
     total = total + cfg.lambda_mask * sum(v for k, v in parts.items() if k.startswith("mask_"))
     if rec.planes is not None:
         planes = rec.planes.float()
-        r = core.cfg.triplane_render_resolution
-        rgb_t, _ = core.render_triplane(planes, cam2world, K, r)
-        premultiplied = _flat(targets - (1 - masks) * bg.view(1, 1, 3, 1, 1))
+        r, n = core.cfg.triplane_render_resolution, core.cfg.triplane_render_views
+        rgb_t, _ = core.render_triplane(planes, cam2world[:, :n], K[:, :n], r)
+        premultiplied = _flat(targets[:, :n] - (1 - masks[:, :n]) * bg.view(1, 1, 3, 1, 1))
         target_t = F.interpolate(premultiplied, size=(r, r), mode="area").view_as(rgb_t)
         parts["l1_triplane"] = (rgb_t - target_t).abs().mean()
         parts["perceptual_triplane"] = perceptual(_flat(rgb_t).clamp(0, 1), _flat(target_t).clamp(0, 1))
@@ -243,7 +245,8 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
                             f"resume with the same config")
     elif (out / CHECKPOINT).exists():
         raise UserError(f"{out} already holds a run; pass --resume to continue it or choose another --out")
-    dataset = TrainingSamples(data, manifest, "train", cfg.views_per_sample, cfg.render_resolution, cfg.seed)
+    dataset = TrainingSamples(data, manifest, "train", cfg.views_per_sample, cfg.render_resolution, cfg.seed,
+                              input_resolution=model_cfg.image_size)
     model = PanoLAM(model_cfg).to(device)
     params = [p for p in model.parameters() if p.requires_grad]
     optimizer = torch.optim.Adam(params, lr=cfg.lr, betas=cfg.betas)
@@ -269,8 +272,7 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
     started, entry = time.monotonic(), {}
     model.train()
     for batch in loader:
-        batch = Views(batch.key, *(t.to(device) if torch.is_tensor(t) else t for t in
-                                   (batch.images, batch.masks, batch.cam2world, batch.K, batch.yaw_deg, batch.planes)))
+        batch = batch.to(device)
         t0 = time.perf_counter()
         loss, parts, renders = compute_losses(model, batch, cfg, perceptual, autocast=device.startswith("cuda"))
         if not torch.isfinite(loss):
@@ -293,6 +295,8 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
                 for k, v in entry.items():
                     if k != "step":
                         writer.add_scalar(f"train/{k}", v, step)
+                _log_text(out, f"step {step}: loss {entry['loss']:.4f}, PSNR {entry['psnr_dense']:.2f} dB, "
+                               f"lr {entry['lr']:.2e}, {entry['seconds']:.2f} s/step", echo=bar is None)
             if step % cfg.image_every == 0 or step == 1:
                 writer.add_image("train/input|dense|coarse|target", _grid(batch, renders), step)
         stop = (cfg.time_limit_s is not None and time.monotonic() - started > cfg.time_limit_s) or \
@@ -312,7 +316,7 @@ def _grid(batch: Views, renders: dict) -> torch.Tensor:
     """One image (3, H, W): rows input | dense | coarse | target for the first sample's targets."""
     targets = batch.images[0, 1:]
     size = targets.shape[-1]
-    inp = F.interpolate(batch.images[:1, 0], size=(size, size), mode="area").expand(len(targets), -1, -1, -1)
+    inp = resized(batch.images[:1, 0], size).expand(len(targets), -1, -1, -1)
     rows = [inp, renders["dense"][0]] + ([renders["coarse"][0]] if "coarse" in renders else []) + [targets]
     rows = [torch.cat(list(r.detach().float().clamp(0, 1).cpu()), dim=-1) for r in rows]
     return torch.cat(rows, dim=-2)
@@ -323,10 +327,12 @@ def _writer(out: Path):
     return SummaryWriter(str(out / "tb"))
 
 
-def _log_text(out: Path, line: str) -> None:
+def _log_text(out: Path, line: str, echo: bool = True) -> None:
+    """Append a line to ``out/train.log`` (and print it)."""
     with open(out / "train.log", "a") as f:
         f.write(line + "\n")
-    print(line, flush=True)
+    if echo:
+        print(line, flush=True)
 
 
 def _progress(enabled: bool, start: int, total: int):

@@ -1,7 +1,6 @@
 """The PanoLAM network: shapes, gradients, clamps, densification, tri-plane branch, ablations, full sizes."""
 from __future__ import annotations
 
-import numpy as np
 import pytest
 import torch
 import torch.nn as nn

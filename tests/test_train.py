@@ -4,7 +4,6 @@ from __future__ import annotations
 import dataclasses
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,7 +12,7 @@ import torch
 from labeling_tool.manifest import compile_manifest, write_manifest
 from panolam import train as train_module
 from panolam.config import preset
-from panolam.data import TrainingSamples, accepted_subjects, load_views
+from panolam.data import TrainingSamples, collate
 from panolam.train import TrainConfig, TrainingError, load_model, read_checkpoint, save_checkpoint, train
 from datagen.pipeline import run_sample
 from tests.conftest import tiny_spec
@@ -46,6 +45,23 @@ def test_sample_choice_is_a_pure_function_of_seed_and_index(curated):
     item = a[0]
     assert item.images.shape == (3, 3, 16, 16) and item.masks.shape == (3, 1, 16, 16)
     assert 0 <= float(item.images.min()) and float(item.images.max()) <= 1
+
+
+def test_input_view_keeps_the_stored_detail_targets_are_resized(curated):
+    from datagen.shards import decode_sample, read_fields
+    data, manifest = curated
+    samples = TrainingSamples(data, manifest, "train", 3, 16, seed=5, input_resolution=32)
+    (key, shard), views = samples.pick(0)
+    item = samples[0]
+    assert item.inputs.shape == (3, 32, 32) and item.images.shape == (3, 3, 16, 16)
+    stored = decode_sample(key, read_fields(data, shard, key), views=views[:1], depth=False)
+    rgb = torch.tensor(stored.rgb[0]).float().div(255).permute(2, 0, 1)
+    alpha = torch.tensor(stored.alpha[0]).float().div(255)
+    expected = rgb * alpha + (1 - alpha)  # over the white background
+    assert torch.allclose(item.inputs, expected, atol=1e-6)  # the stored 32 px view itself, not an upsampled target
+    batch = collate([samples[0], samples[1]])
+    assert batch.inputs.shape == (2, 3, 32, 32) and batch.planes is None
+    assert batch.to("cpu").inputs is not None
 
 
 def test_train_writes_checkpoint_logs_and_resumes_exactly(curated, tmp_path):
@@ -192,8 +208,16 @@ def test_infer_bad_photos_exit_cleanly(untrained_run, tmp_path, make, message):
     assert not (tmp_path / "head.ply").exists()
 
 
-def test_infer_refuses_unknown_turntable_format(untrained_run, tmp_path):
+def test_infer_writes_an_mp4_turntable_and_refuses_unknown_formats(untrained_run, tmp_path):
+    import av
     from PIL import Image
     Image.fromarray(np.full((64, 64, 3), 128, np.uint8)).save(tmp_path / "framed.png")
-    r = _infer("framed.png", "--ckpt", untrained_run, "--no-crop", "--turntable", "t.mp4", cwd=tmp_path)
-    assert r.returncode == 2 and ".gif" in r.stderr
+    r = _infer("framed.png", "--ckpt", untrained_run, "--no-crop", "--turntable", "t.mp4", "--resolution", "33",
+               "--frames", "5", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    with av.open(str(tmp_path / "t.mp4")) as video:
+        frames = [f.to_ndarray(format="rgb24") for f in video.decode(video=0)]
+    assert len(frames) == 5 and frames[0].shape == (34, 34, 3)  # odd sizes padded for yuv420p
+    assert frames[0].mean() > 100  # the head over the white background, not an empty video
+    r = _infer("framed.png", "--ckpt", untrained_run, "--no-crop", "--turntable", "t.avi", cwd=tmp_path)
+    assert r.returncode == 2 and ".mp4" in r.stderr and len(r.stderr.strip().splitlines()) == 1
