@@ -52,6 +52,20 @@ def rss_mb() -> float:
     return int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2 ** 20
 
 
+def reset_peak_rss() -> float:
+    """Reset this process's peak resident set size to its current one (Linux clear_refs); returns that, MiB."""
+    Path("/proc/self/clear_refs").write_text("5")
+    return rss_mb()
+
+
+def peak_rss_since_reset_mb() -> float:
+    """Peak resident set size (VmHWM, MiB) since the last :func:`reset_peak_rss`."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    return peak_rss_mb()
+
+
 def peak_rss_mb() -> float:
     """Peak resident set size of this process so far (MiB)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux

@@ -4,9 +4,10 @@
     python benchmarks/model_speed.py --quick    # tiny rows only
 
 Writes ``benchmarks/reports/model_speed.{json,md,png}``. Each row runs in a fresh process: one
-warm-up, then ``repeats`` timed passes on one 512 x 512 image (batch 1), medians of
-``time.perf_counter``. Memory is the peak resident set size during the timed passes minus the
-resident size before them (CPU), or ``torch.cuda.max_memory_allocated`` (GPU). "forward" is the
+warm-up, then ``repeats`` timed passes on one 512 x 512 photo (scikit-image's astronaut portrait; batch 1), medians of
+``time.perf_counter`` (CUDA synchronized). Memory is the peak resident set size during the timed
+passes minus the resident size before them (CPU), or the peak of ``torch.cuda.max_memory_allocated``
+over what was allocated before them (``--device cuda``; float32 throughout). "forward" is the
 reconstruction alone (no_grad); "fwd+bwd" adds the backward pass of a loss on every dense Gaussian
 attribute (no rendering, so the network is what is measured).
 
@@ -26,25 +27,53 @@ import time
 from pathlib import Path
 
 import torch
-import torch.nn as nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from benchmarks.common import REPORTS, machine_info, peak_rss_mb, pyplot, rss_mb, run_child, write_report  # noqa: E402
+from benchmarks.common import (REPORTS, machine_info, peak_rss_since_reset_mb, pyplot, reset_peak_rss,  # noqa: E402
+                               run_child, write_report)
+from panolam.encoder import DinoV2ShapedStub  # noqa: E402
 
 NAME = "model_speed"
 PAPER = "paper (A100): reconstruction 0.11 s; coarse-to-fine ~6x faster and ~2.4x less memory than direct"
 
 
-class TokenStub(nn.Module):
-    """DINOv2 ViT-L/14 at 518 px stand-in: 37 x 37 tokens of ``out_dim`` channels from the image."""
+def portrait() -> torch.Tensor:
+    """scikit-image's 512 x 512 astronaut photo as (1, 3, 512, 512) in [0, 1]."""
+    from skimage.data import astronaut
+    return torch.from_numpy(astronaut().copy()).float().div(255).permute(2, 0, 1)[None]
 
-    def __init__(self, out_dim):
-        super().__init__()
-        self.out_dim, self.num_tokens, self.image_size = out_dim, 37 * 37, 518
-        self.proj = nn.Linear(3, out_dim)
 
-    def forward(self, x):
-        return self.proj(nn.functional.interpolate(x, size=(37, 37), mode="area").flatten(2).transpose(1, 2))
+def _sync(device: str) -> None:
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def _memory_start(device: str) -> float:
+    """Reset the peak-memory reading; the memory in use now, MiB."""
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+        torch.cuda.reset_peak_memory_stats()
+        return torch.cuda.memory_allocated() / 2 ** 20
+    return reset_peak_rss()
+
+
+def _memory_peak(device: str) -> float:
+    """Peak memory since :func:`_memory_start`, MiB."""
+    return torch.cuda.max_memory_allocated() / 2 ** 20 if device.startswith("cuda") else peak_rss_since_reset_mb()
+
+
+def _timed(fn, repeats: int, device: str) -> tuple[float, float]:
+    """Median seconds of ``repeats`` calls after one warm-up, and the peak memory they added (MiB)."""
+    fn()
+    base = _memory_start(device)
+    times = []
+    for _ in range(repeats):
+        _sync(device)
+        t0 = time.perf_counter()
+        fn()
+        _sync(device)
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), _memory_peak(device) - base
 
 
 def child(config: dict) -> dict:
@@ -54,10 +83,11 @@ def child(config: dict) -> dict:
     if config["encoder"] == "vit_l":
         return vit_l_child(config)
     if config["stub_encoder"]:
-        model_module.build_encoder = lambda kind, weights, out_dim, **kw: TokenStub(out_dim)
+        model_module.build_encoder = lambda kind, weights, out_dim, **kw: DinoV2ShapedStub(out_dim)
     torch.manual_seed(0)
-    m = model_module.PanoLAM(preset(config["config"], dense_points=config["dense_points"]))
-    x = torch.rand(1, 3, 512, 512)
+    device = config["device"]
+    m = model_module.PanoLAM(preset(config["config"], dense_points=config["dense_points"])).to(device)
+    x = portrait().to(device)
 
     def forward():
         with torch.no_grad():
@@ -73,69 +103,52 @@ def child(config: dict) -> dict:
     for name, fn in (("forward", forward), ("fwd_bwd", forward_backward)):
         if name == "fwd_bwd" and not config["backward"]:
             continue
-        fn()
-        base = rss_mb()
-        Path("/proc/self/clear_refs").write_text("5")  # reset the peak RSS to the current RSS
-        times = []
-        for _ in range(config["repeats"]):
-            t0 = time.perf_counter()
-            fn()
-            times.append(time.perf_counter() - t0)
-        out[f"{name}_s"] = statistics.median(times)
-        out[f"{name}_peak_mb"] = _hwm_mb() - base
+        out[f"{name}_s"], out[f"{name}_peak_mb"] = _timed(fn, config["repeats"], device)
     return out
-
-
-def _hwm_mb() -> float:
-    """Peak RSS since the last clear_refs reset (VmHWM), MiB."""
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1]) / 1024
-    return peak_rss_mb()
 
 
 def vit_l_child(config: dict) -> dict:
     from transformers import Dinov2Config, Dinov2Model
     model = Dinov2Model(Dinov2Config(hidden_size=1024, num_hidden_layers=24, num_attention_heads=16,
                                      intermediate_size=4096, patch_size=14, image_size=518)).eval()
-    x = torch.rand(1, 3, 518, 518)
+    model = model.to(config["device"])
+    x = torch.rand(1, 3, 518, 518, device=config["device"])
     with torch.no_grad():
-        model(x, output_hidden_states=True)
-        base = rss_mb()
-        Path("/proc/self/clear_refs").write_text("5")
-        t0 = time.perf_counter()
-        model(x, output_hidden_states=True)
-        seconds = time.perf_counter() - t0
-    return {"forward_s": seconds, "forward_peak_mb": _hwm_mb() - base,
-            "parameters": sum(p.numel() for p in model.parameters())}
+        seconds, peak = _timed(lambda: model(x, output_hidden_states=True), config["repeats"], config["device"])
+    return {"forward_s": seconds, "forward_peak_mb": peak, "parameters": sum(p.numel() for p in model.parameters())}
 
 
-def plan(quick: bool) -> list[dict]:
+def plan(quick: bool, device: str) -> list[dict]:
+    gpu = device.startswith("cuda")
+    common = dict(threads=2, device=device)
     rows = []
     counts = (5000, 10000) if quick else (5000, 10000, 20000)
     for n in counts:
         for cfg in ("tiny", "tiny+no_c2f"):
             rows.append(dict(config=cfg, dense_points=n, stub_encoder=False, encoder="model", backward=True,
-                             repeats=3, threads=2))
+                             repeats=10 if gpu else 3, **common))
     if not quick:
-        for cfg in ("full", "full+no_c2f"):
-            rows.append(dict(config=cfg, dense_points=10000, stub_encoder=True, encoder="model", backward=False,
-                             repeats=1, threads=2))
+        for n in ((10000, 30000, 100000) if gpu else (10000,)):
+            for cfg in ("full", "full+no_c2f"):
+                rows.append(dict(config=cfg, dense_points=n, stub_encoder=True, encoder="model", backward=gpu,
+                                 repeats=10 if gpu else 1, **common))
         rows.append(dict(config="vit_l", dense_points=0, stub_encoder=False, encoder="vit_l", backward=False,
-                         repeats=1, threads=2))
+                         repeats=10 if gpu else 1, **common))
     return rows
 
 
-def measure(quick: bool) -> dict:
+def measure(quick: bool, device: str) -> dict:
     rows = []
-    for config in plan(quick):
+    for config in plan(quick, device):
         print(f"measuring {config['config']} M_D={config['dense_points']} ...", flush=True)
         try:
             rows.append({**config, **run_child(Path(__file__).resolve(), config)})
         except RuntimeError as e:
             rows.append({**config, "error": str(e).splitlines()[-1]})
-    return {"mode": "quick" if quick else "full", "machine": machine_info(), "rows": rows,
-            "command": "python benchmarks/model_speed.py" + (" --quick" if quick else "")}
+    device_name = torch.cuda.get_device_name() if device.startswith("cuda") else "CPU"
+    return {"mode": "quick" if quick else "full", "machine": machine_info(), "rows": rows, "device": device_name,
+            "command": "python benchmarks/model_speed.py" + (" --quick" if quick else "") +
+                       (f" --device {device}" if device != "cpu" else "")}
 
 
 def _ratio(rows, config_a, config_b, n, key):
@@ -149,7 +162,7 @@ def markdown(results: dict, plot_note: str) -> str:
     lines = [f"# PanoLAM network: speed and memory ({results['mode']})", "",
              f"`{results['command']}` on {m['cpu_model']} ({m['cpu_count']} cores, torch {m['torch']}, "
              f"{m['torch_threads']} threads, load average {m['load_average'][0]:.2f}), revision {m['git_revision']}, "
-             f"{m['date']}. No GPU here: every row is CPU. {PAPER}.", "",
+             f"{m['date']}. Device: {results.get('device', 'CPU')}. {PAPER}.", "",
              "| config | M_D (asked / got) | trainable params | forward s | forward peak MiB | fwd+bwd s | "
              "fwd+bwd peak MiB |", "|---|---|---|---|---|---|---|"]
     f = lambda r, k, fmt: (fmt.format(r[k]) if k in r else "-")  # noqa: E731
@@ -169,7 +182,7 @@ def markdown(results: dict, plot_note: str) -> str:
                                                                           "fwd_bwd_peak_mb")]
             lines.append(f"| {base} | {n} | " + " | ".join("-" if v is None else f"{v:.2f}x" for v in vals) + " |")
     lines += ["", "`full` rows: encoder replaced by a 37 x 37-token stub (see the script's docstring); "
-              "`vit_l` is the DINOv2 ViT-L/14 encoder alone at 518 px with random weights, so a CPU "
+              "`vit_l` is the DINOv2 ViT-L/14 encoder alone at 518 px with random weights, so a "
               "reconstruction with `full` costs about the sum of the two.", "", plot_note, ""]
     return "\n".join(lines)
 
@@ -184,7 +197,8 @@ def plot(results: dict, path: Path) -> str:
         n = [r["dense_count"] for r in rows]
         axes[0].plot(n, [r["fwd_bwd_s"] for r in rows], style, label=cfg)
         axes[1].plot(n, [r["fwd_bwd_peak_mb"] for r in rows], style, label=cfg)
-    axes[0].set(xlabel="dense Gaussians M_D", ylabel="forward + backward, s", title="time (CPU, batch 1)")
+    axes[0].set(xlabel="dense Gaussians M_D", ylabel="forward + backward, s",
+                title=f"time ({results.get('device', 'CPU')}, batch 1)")
     axes[1].set(xlabel="dense Gaussians M_D", ylabel="peak memory, MiB", title="memory")
     for ax in axes:
         ax.legend()
@@ -198,14 +212,15 @@ def plot(results: dict, path: Path) -> str:
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--device", default="cpu", help="cpu or cuda (report: model_speed_cuda)")
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
         import json
         print(json.dumps(child(json.loads(args.child))))
         return
-    results = measure(args.quick)
-    stem = REPORTS / (NAME if not args.quick else f"{NAME}_quick")
+    results = measure(args.quick, args.device)
+    stem = REPORTS / (NAME + ("_cuda" if args.device.startswith("cuda") else "") + ("_quick" if args.quick else ""))
     stem.parent.mkdir(parents=True, exist_ok=True)
     write_report(stem, results, markdown(results, plot(results, stem.with_suffix(".png"))))
 

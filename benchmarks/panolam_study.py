@@ -1,25 +1,27 @@
 """PanoLAM on procedural heads, on a CPU: does it learn, does the paper's ablation ordering hold, and
 what do speed and accuracy trade?
 
-    python benchmarks/panolam_study.py                 # dataset + 4 trainings + evaluations (about 1.5 h on 2 cores)
-    python benchmarks/panolam_study.py --steps 300     # shorter
-    python benchmarks/panolam_study.py --phase report  # rewrite the reports from the JSON
+    python benchmarks/panolam_study.py                          # everything, one process (hours on 2 cores)
+    python benchmarks/panolam_study.py --phase train --threads 1 --variants main quarter_subjects &
+    python benchmarks/panolam_study.py --phase train --threads 1 --variants no_c2f tiny single_point rays_k2
+    python benchmarks/panolam_study.py --phase baselines final speed report   # then, on a quiet machine
 
-Steps (each skips what is already on disk, so an interrupted study resumes):
+Phases (each skips what is already on disk, so an interrupted study resumes; training processes can
+run side by side, each variant writing only under ``runs/<name>/``):
 1. data: ``datagen sample`` of procedural heads (360 protocol, 32 views, 128 px) and a manifest
    (``label-tool compile``, unreviewed subjects accepted, ``--test-count`` held out).
-2. train: the ``tiny`` preset and the paper's ablations with the same steps, batch and schedule:
-   no coarse-to-fine (``tiny+no_c2f``), single-point tri-plane query (``tiny+single_point``) and
-   ``tiny`` on a quarter of the training subjects. The ``tiny`` run is evaluated on the held-out
-   subjects every ``--eval-every`` steps (training stops there and resumes exactly).
-3. evaluate on the held-out subjects (front view in; front/left/back/right out; 64 px):
-   every run, and two baselines: the untrained model and the head template rendered with the mean
-   foreground colour of the training images.
-4. speed against error with the trained ``tiny`` run: PSNR/SSIM, reconstruction time, render time
-   and peak memory against the dense Gaussian count (re-densified at inference: the barycentric
-   weights hold for any count) and against render resolution; K_m from the ablation.
-
-Reports: ``benchmarks/reports/panolam_training.{md,json,png}`` and ``speed_vs_error.{md,json,png}``.
+2. baselines: the untrained model and the template rendered opaque in the mean foreground colour
+   of the training images, on the held-out subjects.
+3. train: the main ``tiny`` run (``--steps``, evaluated on held-out subjects every ``--eval-every``
+   steps; training stops there and resumes exactly) and the paper's ablations with their own
+   ``--ablation-steps`` schedule: ``tiny``, no coarse-to-fine (``tiny+no_c2f``), single-point
+   tri-plane query (``tiny+single_point``), ray aggregation with K_m = 2 and ``tiny`` on a quarter
+   of the training subjects.
+4. final: every run's last checkpoint on the held-out subjects (front view in; front, left, back
+   and right out; 64 px), each in a fresh process for clean time and memory readings.
+5. speed: the main run against the dense Gaussian count (re-densified at inference: the barycentric
+   weights exist for any count) and the render resolution.
+6. report: ``benchmarks/reports/panolam_training.{md,json,png}`` and ``speed_vs_error.{md,json,png}``.
 """
 from __future__ import annotations
 
@@ -35,7 +37,8 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from benchmarks.common import HERE, REPORTS, machine_info, pyplot, rss_mb, write_report  # noqa: E402
+from benchmarks.common import (HERE, REPORTS, machine_info, peak_rss_since_reset_mb, pyplot,  # noqa: E402
+                               reset_peak_rss, run_child, table, write_report)
 from labeling_tool.manifest import read_manifest  # noqa: E402
 from panolam.config import preset  # noqa: E402
 from panolam.data import accepted_subjects, load_views  # noqa: E402
@@ -45,7 +48,9 @@ from panolam.model import PanoLAM  # noqa: E402
 from panolam.train import TrainConfig, load_model, read_checkpoint, train  # noqa: E402
 
 OUT = HERE / "out" / "study"
-VARIANTS = {  # name: (config, fraction of training subjects, model overrides)
+MAIN = "main"  # the long `tiny` run: learning curve, speed against error
+VARIANTS = {  # name: (config, fraction of training subjects, model overrides); all but MAIN train --ablation-steps
+    MAIN: ("tiny", 1.0, {}),
     "tiny": ("tiny", 1.0, {}),
     "no_c2f": ("tiny+no_c2f", 1.0, {}),
     "single_point": ("tiny+single_point", 1.0, {}),
@@ -53,6 +58,10 @@ VARIANTS = {  # name: (config, fraction of training subjects, model overrides)
     "quarter_subjects": ("tiny", 0.25, {}),
 }
 RESOLUTION = 64
+PHASES = ("data", "baselines", "train", "final", "speed", "report")
+# The paper's module ablations (Table 4: PSNR, SSIM on its 360-degree test set; "2K subj." trains on 2,000 subjects).
+PAPER_ABLATION = {"tiny": ("Full", 23.494, 0.793), "no_c2f": ("w/o C2F", 22.312, 0.731),
+                  "single_point": ("w/o ST ray agg.", 22.156, 0.715), "quarter_subjects": ("2K subj.", 19.391, 0.699)}
 
 
 def data_phase(args) -> tuple[Path, Path]:
@@ -84,22 +93,25 @@ def subset_manifest(manifest: Path, fraction: float, out: Path) -> Path:
     return path
 
 
-def train_config(args) -> TrainConfig:
-    return TrainConfig(steps=args.steps, batch_size=2, views_per_sample=6, render_resolution=RESOLUTION,
-                       warmup_steps=max(1, args.steps // 20), checkpoint_every=100, log_every=10,
-                       image_every=max(1, args.steps // 5))
+def train_config(steps: int) -> TrainConfig:
+    return TrainConfig(steps=steps, batch_size=2, views_per_sample=6, render_resolution=RESOLUTION,
+                       warmup_steps=max(1, steps // 20), checkpoint_every=100, log_every=10,
+                       image_every=max(1, steps // 5))
 
 
 def evaluate_run(model, data, manifest, args, resolution: int = RESOLUTION) -> dict:
+    """Held-out metrics (means per view, medians of the times) and per-subject PSNR/SSIM for paired comparisons."""
     r = evaluate(model, data, read_manifest(manifest), "test", resolution=resolution, limit=args.eval_subjects)
-    return {k: r[k] for k in ("subjects", "per_view", "reconstruct_s_median", "render_ms_per_view_median")}
+    return {**{k: r[k] for k in ("subjects", "per_view", "reconstruct_s_median", "render_ms_per_view_median")},
+            "rows": [{k: row[k] for k in ("subject", "view", "psnr", "ssim")} for row in r["rows"]]}
 
 
 def train_phase(args, data, manifest) -> None:
     """Train the chosen variants; each keeps its curve in ``runs/<name>/curve.json`` (so processes can share a study)."""
-    cfg = train_config(args)
     for name in args.variants:
         config, fraction, overrides = VARIANTS[name]
+        steps = args.steps if name == MAIN else args.ablation_steps
+        cfg = train_config(steps)
         run = args.out / "runs" / name
         curve_path = run / "curve.json"
         curve = json.loads(curve_path.read_text()) if curve_path.exists() else {
@@ -107,7 +119,7 @@ def train_phase(args, data, manifest) -> None:
             "model_config": preset(config, **overrides).to_dict(), "training_fraction": fraction}
         model_cfg = preset(config, **overrides)
         used = subset_manifest(manifest, fraction, run.parent / name)
-        stops = range(args.eval_every, args.steps + 1, args.eval_every) if name == "tiny" else [args.steps]
+        stops = sorted({*range(args.eval_every, steps + 1, args.eval_every), steps}) if name == MAIN else [steps]
         for stop in stops:
             if any(r["step"] == stop for r in curve["rows"]):
                 continue
@@ -157,33 +169,46 @@ def baseline_phase(args, data, manifest) -> None:
     })
 
 
-def _peak_reset() -> float:
-    Path("/proc/self/clear_refs").write_text("5")
-    return rss_mb()
+def measure_child(config: dict) -> dict:
+    """One held-out evaluation in this fresh process (clean time and peak-memory readings)."""
+    overrides = {"dense_points": config["dense_points"]} if config.get("dense_points") else {}
+    model = load_model(config["run"], **overrides)
+    base = reset_peak_rss()
+    r = evaluate_run(model, config["data"], config["manifest"], SimpleNamespace(eval_subjects=config["eval_subjects"]),
+                     config.get("resolution", RESOLUTION))
+    return {**r, "dense_count": model.dense_count, "peak_mb": peak_rss_since_reset_mb() - base}
 
 
-def _peak_since(base: float) -> float:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1]) / 1024 - base
-    return float("nan")
+def _measure(args, data, manifest, run: Path, **options) -> dict:
+    return run_child(Path(__file__), {"run": str(run), "data": str(data), "manifest": str(manifest),
+                                      "eval_subjects": args.eval_subjects, **options})
+
+
+def final_phase(args, data, manifest) -> None:
+    """Each trained run's last checkpoint on the held-out subjects, one run at a time (clean times and memory)."""
+    for name in VARIANTS:
+        run = args.out / "runs" / name
+        if not (run / "curve.json").exists():
+            continue
+        r = _measure(args, data, manifest, run)
+        history = json.loads((run / "curve.json").read_text()).get("history", [])
+        _write_json(run / "final.json", {
+            "step": read_checkpoint(run)["step"], "machine": machine_info(),
+            "train_s_per_step_median": float(np.median([h["seconds"] for h in history])) if history else None, **r})
+        print(f"{name}: held-out PSNR {_psnr(r):.2f} dB", flush=True)
 
 
 def speed_phase(args, data, manifest) -> None:
-    run = args.out / "runs" / "tiny"
+    run = args.out / "runs" / MAIN
     rows = []
     for n in args.dense_counts:
-        model = load_model(run, dense_points=n)
-        base = _peak_reset()
-        r = evaluate_run(model, data, manifest, args)
-        rows.append({"axis": "dense_points", "value": model.dense_count, "peak_mb": _peak_since(base), **r})
-        print(f"M_D={model.dense_count}: PSNR {r['per_view']['all']['psnr']:.2f}", flush=True)
-    model = load_model(run)
+        r = _measure(args, data, manifest, run, dense_points=n)
+        rows.append({"axis": "dense_points", "value": r["dense_count"], **r})
+        print(f"M_D={r['dense_count']}: PSNR {_psnr(r):.2f}", flush=True)
     for res in args.resolutions:
-        base = _peak_reset()
-        r = evaluate_run(model, data, manifest, args, resolution=res)
-        rows.append({"axis": "render_resolution", "value": res, "peak_mb": _peak_since(base), **r})
-        print(f"{res} px: PSNR {r['per_view']['all']['psnr']:.2f}", flush=True)
+        r = _measure(args, data, manifest, run, resolution=res)
+        rows.append({"axis": "render_resolution", "value": res, **r})
+        print(f"{res} px: PSNR {_psnr(r):.2f}", flush=True)
     _write_json(args.out / "speed.json", {"machine": machine_info(), "rows": rows})
 
 
@@ -199,11 +224,15 @@ def load_results(args) -> dict:
     read = lambda p: json.loads(p.read_text()) if p.exists() else None  # noqa: E731
     curves = {name: read(args.out / "runs" / name / "curve.json") for name in VARIANTS}
     curves = {k: v for k, v in curves.items() if v}
+    finals = {name: read(args.out / "runs" / name / "final.json") for name in curves}
     speed = read(args.out / "speed.json") or {}
     return {"machine": machine_info(), "command": args.command, "args": args.recorded,
             "baselines": read(args.out / "baselines.json") or {},
             "curves": {k: v["rows"] for k, v in curves.items()},
+            "runs": {k: {key: v.get(key) for key in ("command", "train_config", "model_config", "training_fraction",
+                                                     "machine")} for k, v in curves.items()},
             "history": {k: v.get("history", []) for k, v in curves.items()},
+            "final": {k: v for k, v in finals.items() if v},
             "speed_vs_error": speed.get("rows", []), "speed_machine": speed.get("machine")}
 
 
@@ -212,71 +241,142 @@ def _psnr(r):
     return r["per_view"]["all"]["psnr"]
 
 
+def _ssim(r):
+    return r["per_view"]["all"]["ssim"]
+
+
 def _views(r):
     return " | ".join(f"{r['per_view'][v]['psnr']:.2f}" for v in ("front", "left", "back", "right"))
 
 
+def paired_difference(a: dict, b: dict) -> tuple[float, float]:
+    """Mean and standard error of the per-subject PSNR difference a - b (each subject's views averaged)."""
+    def per_subject(r):
+        out = {}
+        for row in r["rows"]:
+            out.setdefault(row["subject"], []).append(row["psnr"])
+        return {k: float(np.mean(v)) for k, v in out.items()}
+    pa, pb = per_subject(a), per_subject(b)
+    d = np.array([pa[k] - pb[k] for k in pa if k in pb])
+    return float(d.mean()), (float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("nan"))
+
+
+def _machine_line(m: dict) -> str:
+    return (f"{m['cpu_model']} ({m['cpu_count']} cores), torch {m['torch']}, revision {m['git_revision']}, "
+            f"{m['date']}")
+
+
+def _setup(results: dict) -> list[str]:
+    a, runs = results["args"], results["runs"]
+    main = runs.get(MAIN) or next(iter(runs.values()), {})
+    tc = main.get("train_config") or {}
+    commands = sorted({r["command"] for r in runs.values() if r.get("command")})
+    return [f"Machine: {_machine_line(main.get('machine') or results['machine'])}. Dataset: {a['subjects']} "
+            f"procedural subjects (360 protocol, 32 views of 128 px; 4 % carry an injected defect and, unreviewed, "
+            f"stay accepted), {a['test_count']} held out by the manifest, {a['eval_subjects']} of them evaluated: the "
+            f"front view in at the encoder's 128 px, front/left/back/right out at {RESOLUTION} px over white. "
+            f"Training: {tc.get('batch_size')} subjects x {tc.get('views_per_sample')} views per step (1 input, the "
+            f"rest targets) at {tc.get('render_resolution')} px, Adam, linear warm-up then cosine decay; D-SSIM stands "
+            "in for LPIPS (no LPIPS weights here); procedural data has no GAN planes, so lambda_6 has nothing to "
+            "supervise. Training processes ran two at a time, one thread each, so their seconds per step are "
+            "comparable with each other, not with a quiet 2-thread run.", "", "```", *commands,
+            "python benchmarks/panolam_study.py --phase baselines final speed report", "```"]
+
+
 def training_markdown(results: dict, plot_note: str) -> str:
-    m, a = results["machine"], results["args"]
-    lines = ["# PanoLAM `tiny` trained on procedural heads (CPU)", "",
-             f"`{results['command']}` on {m['cpu_model']} ({m['cpu_count']} cores, torch {m['torch']}), revision "
-             f"{m['git_revision']}, {m['date']}. Dataset: {a['subjects']} procedural subjects (360 protocol, 32 views, "
-             f"128 px), {a['test_count']} held out; training {a['steps']} steps of 2 subjects x 6 views at "
-             f"{RESOLUTION} px; D-SSIM stands in for LPIPS (no LPIPS weights here). Held-out evaluation: "
-             f"{a['eval_subjects']} test subjects, front view in, front/left/back/right out, {RESOLUTION} px.", "",
-             "| model | held-out PSNR dB (all views) | front | left | back | right | SSIM | training time |",
-             "|---|---|---|---|---|---|---|---|"]
-    for name, r in results.get("baselines", {}).items():
-        lines.append(f"| baseline: {name.replace('_', ' ')} | {_psnr(r):.2f} | {_views(r)} | "
-                     f"{r['per_view']['all']['ssim']:.4f} | - |")
-    for name, rows in results.get("curves", {}).items():
-        if rows:
-            r = rows[-1]
-            total = sum(x["train_s"] for x in rows)
-            lines.append(f"| {name} (step {r['step']}) | {_psnr(r):.2f} | {_views(r)} | {r['per_view']['all']['ssim']:.4f} "
-                         f"| {total / 60:.1f} min |")
-    curves = results.get("curves", {})
-    if "tiny" in curves:
-        lines += ["", "Held-out PSNR of `tiny` during training:", "", "| step | PSNR dB | SSIM |", "|---|---|---|"]
-        lines += [f"| {r['step']} | {_psnr(r):.2f} | {r['per_view']['all']['ssim']:.4f} |" for r in curves["tiny"]]
-    order = [n for n in ("tiny", "no_c2f", "single_point", "quarter_subjects") if curves.get(n)]
-    if len(order) == 4:
-        psnrs = {n: _psnr(curves[n][-1]) for n in order}
-        holds = psnrs["tiny"] > max(psnrs["no_c2f"], psnrs["single_point"], psnrs["quarter_subjects"])
-        lines += ["", f"Paper's ablation ordering (full model best): {'holds' if holds else 'does not hold'} here "
-                  f"(" + ", ".join(f"{n} {v:.2f} dB" for n, v in psnrs.items()) + ")."]
+    curves, finals, base = results["curves"], results["final"], results["baselines"]
+    lines = ["# PanoLAM `tiny` trained on procedural heads (CPU)", "", *_setup(results), "",
+             "## Held-out subjects: does it learn?", "",
+             "| model | PSNR dB (all views) | front | left | back | right | SSIM |", "|---|---|---|---|---|---|---|"]
+    for name, r in base.items():
+        lines.append(f"| baseline: {name.replace('_', ' ')} | {_psnr(r):.2f} | {_views(r)} | {_ssim(r):.4f} |")
+    if MAIN in finals:
+        r = finals[MAIN]
+        lines.append(f"| `tiny`, {r['step']} steps | {_psnr(r):.2f} | {_views(r)} | {_ssim(r):.4f} |")
+        for name, b in base.items():
+            d, se = paired_difference(r, b)
+            lines.append(f"\n`tiny` against the {name.replace('_', ' ')} baseline: {d:+.2f} +- {se:.2f} dB "
+                         f"(mean +- standard error of the per-subject difference, {r['subjects']} subjects).")
+    if curves.get(MAIN):
+        elapsed = np.cumsum([x["train_s"] for x in curves[MAIN]]) / 60
+        lines += ["", "Held-out PSNR of the main run during training (its schedule ends at the last step):", "",
+                  "| step | PSNR dB | SSIM | training min |", "|---|---|---|---|"]
+        lines += [f"| {r['step']} | {_psnr(r):.2f} | {_ssim(r):.4f} | {t:.0f} |" for r, t in zip(curves[MAIN], elapsed)]
+    ablations = [n for n in ("tiny", "no_c2f", "single_point", "rays_k2", "quarter_subjects") if n in finals]
+    if "tiny" in finals and len(ablations) > 1:
+        steps = finals["tiny"]["step"]
+        what = {"tiny": "the `tiny` preset", "no_c2f": "no coarse-to-fine: the attention stack runs on all M_D points",
+                "single_point": "tri-plane queried at the point only (no ray aggregation)",
+                "rays_k2": "ray aggregation with K_m = 2 instead of 8",
+                "quarter_subjects": "a quarter of the training subjects"}
+        lines += ["", f"## The paper's ablations at small scale ({steps} steps each, each with its own schedule)", "",
+                  "| variant | what changes | PSNR dB | SSIM | `tiny` minus it, dB | train s/step | paper: PSNR / SSIM |",
+                  "|---|---|---|---|---|---|---|"]
+        for n in ablations:
+            r = finals[n]
+            d = "-" if n == "tiny" else "{:+.2f} +- {:.2f}".format(*paired_difference(finals["tiny"], r))
+            paper = PAPER_ABLATION.get(n)
+            paper = f"{paper[0]}: {paper[1]:.2f} / {paper[2]:.3f}" if paper else "-"
+            lines.append(f"| {n} | {what[n]} | {_psnr(r):.2f} | {_ssim(r):.4f} | {d} | "
+                         f"{r['train_s_per_step_median']:.1f} | {paper} |")
+        verdicts = []
+        for n in ("no_c2f", "single_point", "quarter_subjects"):
+            if n in finals:
+                d, se = paired_difference(finals["tiny"], finals[n])
+                verdicts.append(f"{n}: " + ("tiny better" if d > 2 * se else "ablation better" if d < -2 * se
+                                            else "no clear difference") + f" ({d:+.2f} +- {se:.2f} dB)")
+        lines += ["", "Paper's ordering (the full model beats each ablation), judged by the paired difference against "
+                  "twice its standard error: " + "; ".join(verdicts) + "."]
     lines += ["", plot_note, ""]
     return "\n".join(lines)
 
 
 def speed_markdown(results: dict, plot_note: str) -> str:
-    rows = results.get("speed_vs_error", [])
+    rows, finals = results["speed_vs_error"], results["final"]
+    m = results.get("speed_machine") or results["machine"]
     lines = ["# Speed against error: PanoLAM `tiny` (CPU)", "",
-             f"Trained `tiny` run of the study (`{results['command']}`); held-out subjects at "
-             f"{RESOLUTION} px unless the row varies the resolution. Times are medians per subject on "
-             f"{results['machine']['cpu_count']} CPU cores; memory is the peak resident-set increase during the "
-             "evaluation (model, images and renders).", "",
-             "| varied | value | PSNR dB | SSIM | reconstruct ms | render ms/view | peak MiB |", "|---|---|---|---|---|---|---|"]
-    for r in rows:
-        lines.append(f"| {r['axis']} | {r['value']} | {_psnr(r):.2f} | {r['per_view']['all']['ssim']:.4f} | "
-                     f"{r['reconstruct_s_median'] * 1000:.0f} | {r['render_ms_per_view_median']:.1f} | {r['peak_mb']:.0f} |")
-    curves = results.get("curves", {})
-    if curves.get("tiny") and curves.get("single_point"):
-        a, b = curves["tiny"][-1], curves["single_point"][-1]
-        lines += ["", "K_m (tri-plane samples per virtual-camera ray), from the ablation runs (same steps):", "",
-                  "| K_m | PSNR dB | SSIM | reconstruct ms |", "|---|---|---|---|",
-                  f"| 1 (the point only) | {_psnr(b):.2f} | {b['per_view']['all']['ssim']:.4f} | "
-                  f"{b['reconstruct_s_median'] * 1000:.0f} |",
-                  f"| {preset('tiny').ray_samples} per camera x 4 cameras | {_psnr(a):.2f} | "
-                  f"{a['per_view']['all']['ssim']:.4f} | {a['reconstruct_s_median'] * 1000:.0f} |"]
-    if curves.get("tiny") and curves.get("no_c2f"):
-        a, b = curves["tiny"][-1], curves["no_c2f"][-1]
-        lines += ["", f"Coarse-to-fine vs direct dense regression (same M_D): PSNR {_psnr(a):.2f} vs {_psnr(b):.2f} dB; "
-                  f"reconstruction {a['reconstruct_s_median'] * 1000:.0f} vs {b['reconstruct_s_median'] * 1000:.0f} ms; "
-                  f"training {sum(x['train_s'] for x in curves['tiny']) / 60:.1f} vs "
-                  f"{sum(x['train_s'] for x in curves['no_c2f']) / 60:.1f} min. "
-                  "Network time and memory alone: model_speed.md."]
-    lines += ["", plot_note, ""]
+             f"Machine: {_machine_line(m)}; measured alone, {m['torch_threads']} threads. Held-out subjects of the "
+             f"study (panolam_training.md): front view in, front/left/back/right out at {RESOLUTION} px unless a row "
+             "varies the resolution. Times are medians per subject (reconstruction: one forward pass, batch 1; "
+             "render: per view); memory is the peak resident-set increase while evaluating (model, images, renders).", ""]
+    axis = lambda a: [r for r in rows if r["axis"] == a]  # noqa: E731
+    quality = lambda r: [f"{_psnr(r):.2f}", f"{_ssim(r):.4f}"]  # noqa: E731
+    if axis("dense_points"):
+        lines += ["## Dense Gaussians M_D (the main run, trained at 5,000, re-densified at inference)", "",
+                  *table(["M_D", "PSNR dB", "SSIM", "reconstruct ms", "render ms/view", "peak MiB"],
+                         [[r["value"], *quality(r), f"{r['reconstruct_s_median'] * 1000:.0f}",
+                           f"{r['render_ms_per_view_median']:.1f}", f"{r['peak_mb']:.0f}"] for r in axis("dense_points")]),
+                  ""]
+    if axis("render_resolution"):
+        lines += ["## Render resolution (the main run)", "",
+                  *table(["px", "PSNR dB", "SSIM", "render ms/view", "peak MiB"],
+                         [[r["value"], *quality(r), f"{r['render_ms_per_view_median']:.1f}", f"{r['peak_mb']:.0f}"]
+                          for r in axis("render_resolution")]), ""]
+    k_runs = [(n, k) for n, k in (("single_point", 1), ("rays_k2", 4 * 2), ("tiny", 4 * preset("tiny").ray_samples))
+              if n in finals]
+    if k_runs:
+        lines += [f"## Tri-plane samples per dense point (separate trainings, {finals[k_runs[0][0]]['step']} steps)", "",
+                  "| run | samples per point | PSNR dB | SSIM | reconstruct ms | train s/step | peak MiB |",
+                  "|---|---|---|---|---|---|---|"]
+        for n, k in k_runs:
+            r = finals[n]
+            label = "1 (the point alone)" if n == "single_point" else f"{k} (4 cameras x K_m = {k // 4})"
+            lines.append(f"| {n} | {label} | {_psnr(r):.2f} | {_ssim(r):.4f} | {r['reconstruct_s_median'] * 1000:.0f} "
+                         f"| {r['train_s_per_step_median']:.1f} | {r['peak_mb']:.0f} |")
+        lines.append("")
+    if "tiny" in finals and "no_c2f" in finals:
+        a, b = finals["tiny"], finals["no_c2f"]
+        d, se = paired_difference(a, b)
+        lines += ["## Coarse-to-fine against direct dense regression (same M_D, same steps)", "",
+                  "| run | PSNR dB | SSIM | reconstruct ms | train s/step | peak MiB |", "|---|---|---|---|---|---|"]
+        lines += [f"| {n} | {_psnr(r):.2f} | {_ssim(r):.4f} | {r['reconstruct_s_median'] * 1000:.0f} | "
+                  f"{r['train_s_per_step_median']:.1f} | {r['peak_mb']:.0f} |" for n, r in (("tiny", a), ("no_c2f", b))]
+        lines += ["", f"Direct regression relative to coarse-to-fine: reconstruction "
+                  f"{b['reconstruct_s_median'] / a['reconstruct_s_median']:.1f}x the time, training "
+                  f"{b['train_s_per_step_median'] / a['train_s_per_step_median']:.1f}x the time per step, PSNR "
+                  f"{-d:+.2f} +- {se:.2f} dB. The network alone, forward and backward, with peak memory: "
+                  "model_speed.md.", ""]
+    lines += [plot_note, ""]
     return "\n".join(lines)
 
 
@@ -284,43 +384,55 @@ def training_plot(results: dict, path: Path) -> str:
     plt = pyplot()
     if plt is None:
         return "Plot skipped: matplotlib is not installed."
-    fig, ax = plt.subplots(figsize=(7, 4))
-    for name, hist in results.get("history", {}).items():
-        steps = np.array([h["step"] for h in hist])
-        p = np.array([h["psnr_dense"] for h in hist])
-        k = max(1, len(p) // 30)
-        smooth = np.convolve(p, np.ones(k) / k, mode="valid")
-        ax.plot(steps[k - 1:], smooth, label=f"{name}: training views", alpha=0.7)
-    rows = results.get("curves", {}).get("tiny", [])
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    for name, hist in results["history"].items():
+        if not hist:
+            continue
+        steps, p = np.array([h["step"] for h in hist]), np.array([h["psnr_dense"] for h in hist])
+        k = max(1, min(25, len(p) // 4))
+        ax.plot(steps[k - 1:], np.convolve(p, np.ones(k) / k, mode="valid"), alpha=0.6, lw=1,
+                label=f"{name}: training batches (running mean of {k})")
+    rows = results["curves"].get(MAIN, [])
     if rows:
-        ax.plot([r["step"] for r in rows], [_psnr(r) for r in rows], "ko-", label="tiny: held-out subjects")
-    for name, r in results.get("baselines", {}).items():
-        ax.axhline(_psnr(r), ls="--", color="gray" if name == "untrained" else "tab:red", label=f"baseline: {name}")
+        ax.plot([r["step"] for r in rows], [_psnr(r) for r in rows], "ko-", label=f"{MAIN}: held-out subjects")
+    for (name, r), colour in zip(results["baselines"].items(), ("gray", "tab:red")):
+        ax.axhline(_psnr(r), ls="--", color=colour, label=f"baseline, held out: {name.replace('_', ' ')}")
     ax.set(xlabel="step", ylabel="PSNR dB", title="PanoLAM tiny on procedural heads (CPU)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
-    return f"![learning curve]({path.name})"
+    return f"![learning curves]({path.name})"
 
 
 def speed_plot(results: dict, path: Path) -> str:
     plt = pyplot()
-    rows = results.get("speed_vs_error", [])
-    if plt is None or not rows:
-        return "Plot skipped: matplotlib is not installed." if plt is None else ""
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
-    for ax, axis, label in ((axes[0], "dense_points", "dense Gaussians M_D"), (axes[1], "render_resolution", "render px")):
-        sel = [r for r in rows if r["axis"] == axis]
-        x = [r["value"] for r in sel]
-        ax.plot(x, [_psnr(r) for r in sel], "o-", color="tab:blue")
+    if plt is None:
+        return "Plot skipped: matplotlib is not installed."
+    rows, finals = results["speed_vs_error"], results["final"]
+    k_runs = [(k, finals[n]) for n, k in (("single_point", 1), ("rays_k2", 8), ("tiny", 4 * preset("tiny").ray_samples))
+              if n in finals]
+    panels = [("dense Gaussians M_D", [(r["value"], r) for r in rows if r["axis"] == "dense_points"],
+               "reconstruct ms", lambda r: r["reconstruct_s_median"] * 1000),
+              ("tri-plane samples per point", k_runs, "train s/step", lambda r: r["train_s_per_step_median"]),
+              ("render px", [(r["value"], r) for r in rows if r["axis"] == "render_resolution"],
+               "render ms / view", lambda r: r["render_ms_per_view_median"])]
+    panels = [p for p in panels if p[1]]
+    if not panels:
+        return ""
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.6 * len(panels), 4), squeeze=False)
+    for ax, (label, points, cost_label, cost) in zip(axes[0], panels):
+        x = [v for v, _ in points]
+        ax.plot(x, [_psnr(r) for _, r in points], "o-", color="tab:blue")
         ax.set(xlabel=label, ylabel="held-out PSNR dB")
+        if label != "render px":
+            ax.set_xscale("log")
+            ax.minorticks_off()
+        ax.set_xticks(x, [str(v) for v in x])
         twin = ax.twinx()
-        key = "reconstruct_s_median" if axis == "dense_points" else "render_ms_per_view_median"
-        scale = 1000 if axis == "dense_points" else 1
-        twin.plot(x, [r[key] * scale for r in sel], "s--", color="tab:orange")
-        twin.set_ylabel("reconstruct ms" if axis == "dense_points" else "render ms / view", color="tab:orange")
+        twin.plot(x, [cost(r) for _, r in points], "s--", color="tab:orange")
+        twin.set_ylabel(cost_label, color="tab:orange")
         ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -331,9 +443,10 @@ def speed_plot(results: dict, path: Path) -> str:
 def reports(results: dict) -> None:
     stem = REPORTS / "panolam_training"
     stem.parent.mkdir(parents=True, exist_ok=True)
-    write_report(stem, results, training_markdown(results, training_plot(results, stem.with_suffix(".png"))))
+    write_report(stem, {k: results[k] for k in ("args", "runs", "baselines", "curves", "final", "history")},
+                 training_markdown(results, training_plot(results, stem.with_suffix(".png"))))
     stem = REPORTS / "speed_vs_error"
-    write_report(stem, {k: results.get(k) for k in ("machine", "command", "speed_vs_error")},
+    write_report(stem, {k: results[k] for k in ("speed_machine", "speed_vs_error", "final")},
                  speed_markdown(results, speed_plot(results, stem.with_suffix(".png"))))
 
 
@@ -342,17 +455,21 @@ def main(argv=None) -> None:
     parser.add_argument("--out", type=Path, default=OUT)
     parser.add_argument("--subjects", type=int, default=160)
     parser.add_argument("--test-count", type=int, default=16)
-    parser.add_argument("--steps", type=int, default=1200)
-    parser.add_argument("--eval-every", type=int, default=200)
+    parser.add_argument("--steps", type=int, default=800, help="steps of the main run")
+    parser.add_argument("--ablation-steps", type=int, default=200, help="steps of each ablation run")
+    parser.add_argument("--eval-every", type=int, default=100, help="held-out evaluation interval of the main run")
     parser.add_argument("--eval-subjects", type=int, default=16)
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     parser.add_argument("--dense-counts", type=int, nargs="+", default=[1280, 2500, 5000, 10000, 20000])
     parser.add_argument("--resolutions", type=int, nargs="+", default=[32, 64, 128])
-    parser.add_argument("--phase", nargs="+", default=["data", "baselines", "train", "speed", "report"],
-                        choices=["data", "baselines", "train", "speed", "report"])
+    parser.add_argument("--phase", nargs="+", default=list(PHASES), choices=list(PHASES))
     parser.add_argument("--resume-data", action="store_true", help="finish an interrupted dataset")
     parser.add_argument("--threads", type=int, help="torch threads (two studies of 1 thread each share 2 cores well)")
+    parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.child:
+        print(json.dumps(measure_child(json.loads(args.child))))
+        return
     if args.threads:
         torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -363,6 +480,8 @@ def main(argv=None) -> None:
         baseline_phase(args, data, manifest)
     if "train" in args.phase:
         train_phase(args, data, manifest)
+    if "final" in args.phase:
+        final_phase(args, data, manifest)
     if "speed" in args.phase:
         speed_phase(args, data, manifest)
     if "report" in args.phase:

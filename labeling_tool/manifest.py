@@ -53,7 +53,7 @@ def compile_manifest(dataset, labels_dir, policy: str = "any-bad", unreviewed: s
     if unreviewed not in ("accept", "reject"):
         raise UserError("--unreviewed must be accept or reject")
     index = read_index(dataset)
-    index_sha = hashlib.sha256((Path(dataset) / INDEX_NAME).read_bytes()).hexdigest()
+    index_sha = index_sha256(dataset)
     logs, problems = read_logs(labels_dir)
     per_reviewer = {r: {s: (e.action, e.reasons) for s, e in verdicts(ev).items() if e.action in ("good", "bad")}
                     for r, ev in logs.items()}
@@ -139,6 +139,19 @@ def read_manifest(path) -> dict:
     if not isinstance(m, dict) or m.get("header", {}).get("format") != FORMAT:
         raise UserError(f"{path}: not a {FORMAT} manifest")
     return m
+
+
+def index_sha256(dataset) -> str:
+    """sha256 of a dataset's index.json: what ties a manifest to its dataset."""
+    return hashlib.sha256((Path(dataset) / INDEX_NAME).read_bytes()).hexdigest()
+
+
+def check_dataset(manifest: dict, dataset, where="the manifest") -> None:
+    """UserError unless ``manifest`` was compiled for the dataset folder ``dataset`` (same index.json)."""
+    read_index(dataset)
+    if manifest["header"].get("dataset_index_sha256") != index_sha256(dataset):
+        raise UserError(f"{where} was compiled for another dataset than {dataset} (its index.json differs); "
+                        f"compile one for this dataset with 'label-tool compile {dataset} ...'")
 
 
 def next_version_path(manifests_dir, dataset) -> Path:

@@ -25,14 +25,20 @@ import torch.nn.functional as F
 
 from datagen.errors import UserError
 from datagen.shards import decode_sample, read_fields, shard_index
-from labeling_tool.manifest import read_manifest
+from labeling_tool.manifest import check_dataset, read_manifest
 
 BACKGROUND = (1.0, 1.0, 1.0)
+SPHEREHEAD_PLANES_NDIM = 5  # (2, D, C, R, R); EG3D's and PanoHead's are (3, C, R, R)
 SPLITS = ("train", "test")
 
 
-def accepted_subjects(manifest: dict, split: str) -> list[tuple[str, int]]:
-    """(subject id, shard) of the accepted subjects of ``split``, in manifest order."""
+def accepted_subjects(manifest: dict, split: str, root=None) -> list[tuple[str, int]]:
+    """(subject id, shard) of the accepted subjects of ``split``, in manifest order.
+
+    With ``root``, the manifest must have been compiled for that dataset folder (UserError otherwise).
+    """
+    if root is not None:
+        check_dataset(manifest, root)
     if split not in SPLITS:
         raise UserError(f"unknown split {split!r}; choose train or test")
     out = [(s["subject"], shard_index(s["shard"])) for s in manifest["subjects"]
@@ -48,9 +54,12 @@ def _rng(seed: int, *stream: int) -> np.random.Generator:
 
 @dataclass(frozen=True)
 class Views:
-    """Some views of one subject: images (V, 3, H, W), masks (V, 1, H, W), cam2world (V, 4, 4), K (V, 3, 3).
+    """Some views of one subject: images (V, 3, H, W), masks (V, 1, H, W), cam2world (V, 4, 4), K (V, 3, 3),
+    yaw (deg) and camera radius (world units, to the look-at pivot) per view.
 
-    ``inputs`` (3, H_in, W_in): the first view at the encoder's input size, when it was asked for.
+    ``planes``: SphereHead's plane features (2, D, C, R, R) when the dataset stores them (other GANs'
+    planes are left out: the tri-plane branch is distilled from SphereHead's). ``inputs`` (3, H_in,
+    W_in): the first view at the encoder's input size, when it was asked for.
     """
 
     key: str
@@ -59,6 +68,7 @@ class Views:
     cam2world: torch.Tensor
     K: torch.Tensor
     yaw_deg: torch.Tensor
+    radius: torch.Tensor
     planes: torch.Tensor | None = None
     inputs: torch.Tensor | None = None
 
@@ -68,7 +78,7 @@ class Views:
 
 
 def resized(images: torch.Tensor, size: int) -> torch.Tensor:
-    """(N, C, H, W) -> (N, C, size, size): area average to shrink, antialiased bilinear to enlarge."""
+    """(N, C, H, W) -> (N, C, size, size): area average to shrink, bilinear to enlarge."""
     if images.shape[-2:] == (size, size):
         return images
     if size < images.shape[-1]:
@@ -82,11 +92,16 @@ def load_views(root, key: str, shard: int, views=None, resolution: int | None = 
 
     With ``input_resolution``, ``inputs`` holds the first of these views resized from the stored image.
     """
-    fields = read_fields(root, shard, key)
+    return decode_views(key, read_fields(root, shard, key), views, resolution, input_resolution, str(root))
+
+
+def decode_views(key: str, fields: dict, views=None, resolution: int | None = None,
+                 input_resolution: int | None = None, where: str = "") -> Views:
+    """:func:`load_views` on a subject's raw fields (:func:`datagen.shards.read_fields`)."""
     if views is None:
         views = range(len(json.loads(fields["json"])["views"]))
     views = [int(v) for v in views]
-    sample = decode_sample(key, fields, where=str(root), views=views, depth=False)
+    sample = decode_sample(key, fields, where=where, views=views, depth=False)
     records = sample.metadata["views"]
     rgb = torch.from_numpy(np.stack(sample.rgb)).float().div(255).permute(0, 3, 1, 2)
     alpha = torch.from_numpy(np.stack(sample.alpha)).float().div(255)
@@ -99,9 +114,13 @@ def load_views(root, key: str, shard: int, views=None, resolution: int | None = 
     cam2world = torch.tensor([records[v]["cam2world"] for v in views], dtype=torch.float32)
     K = torch.tensor([records[v]["intrinsics"] for v in views], dtype=torch.float32)
     yaw = torch.tensor([records[v]["yaw_deg"] for v in views], dtype=torch.float32)
+    radius = torch.tensor([records[v]["radius"] for v in views], dtype=torch.float32)
     planes = sample.arrays.get("planes")
-    planes = None if planes is None else torch.from_numpy(np.asarray(planes, dtype=np.float32))
-    return Views(key, images.clamp(0, 1), alpha.clamp(0, 1), cam2world, K, yaw, planes, inputs)
+    if planes is not None and np.ndim(planes) == SPHEREHEAD_PLANES_NDIM:
+        planes = torch.from_numpy(np.asarray(planes, dtype=np.float32))
+    else:
+        planes = None
+    return Views(key, images.clamp(0, 1), alpha.clamp(0, 1), cam2world, K, yaw, radius, planes, inputs)
 
 
 def view_yaws(root, key: str, shard: int) -> np.ndarray:
@@ -115,25 +134,32 @@ class TrainingSamples(torch.utils.data.Dataset):
     def __init__(self, root, manifest_path, split: str, views_per_sample: int, resolution: int, seed: int,
                  input_resolution: int | None = None):
         self.root, self.seed = root, seed
-        self.subjects = accepted_subjects(read_manifest(manifest_path), split)
+        self.subjects = accepted_subjects(read_manifest(manifest_path), split, root)
         self.views_per_sample, self.resolution, self.input_resolution = views_per_sample, resolution, input_resolution
-        self.n_views = len(view_yaws(root, *self.subjects[0]))
-        if views_per_sample > self.n_views:
-            raise UserError(f"{views_per_sample} views per sample, but subjects have {self.n_views}")
+        n = len(view_yaws(root, *self.subjects[0]))
+        if views_per_sample > n:
+            raise UserError(f"{views_per_sample} views per sample, but subjects have {n}")
 
     def __len__(self) -> int:
         return len(self.subjects)
 
-    def pick(self, g: int) -> tuple[tuple[str, int], list[int]]:
-        """The subject and views of global sample ``g`` (pure function of seed and g)."""
+    def pick(self, g: int) -> tuple[str, int]:
+        """The subject (id, shard) of global sample ``g``: epoch g // N visits all N in a seeded order."""
         n = len(self.subjects)
-        order = _rng(self.seed, 0, g // n).permutation(n)
-        views = _rng(self.seed, 1, g).choice(self.n_views, self.views_per_sample, replace=False)
-        return self.subjects[order[g % n]], [int(v) for v in views]
+        return self.subjects[_rng(self.seed, 0, g // n).permutation(n)[g % n]]
+
+    def view_choice(self, g: int, n_views: int) -> list[int]:
+        """The N_v distinct views of global sample ``g`` among its subject's ``n_views``."""
+        return [int(v) for v in _rng(self.seed, 1, g).choice(n_views, self.views_per_sample, replace=False)]
 
     def __getitem__(self, g: int) -> Views:
-        (key, shard), views = self.pick(g)
-        return load_views(self.root, key, shard, views, self.resolution, self.input_resolution)
+        key, shard = self.pick(g)
+        fields = read_fields(self.root, shard, key)
+        n = len(json.loads(fields["json"])["views"])
+        if n < self.views_per_sample:
+            raise UserError(f"{self.root}: subject {key} has {n} views, fewer than {self.views_per_sample} per sample")
+        return decode_views(key, fields, self.view_choice(g, n), self.resolution, self.input_resolution,
+                            str(self.root))
 
 
 def collate(items: list[Views]) -> Views:

@@ -19,6 +19,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from datagen.errors import UserError
+
 # transformers is imported where DINOv2 is loaded: importing it takes seconds and the small encoder does not need it.
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -32,8 +34,21 @@ _META_REQUIRED = ("cls_token", "pos_embed", "patch_embed.proj.weight", "blocks.0
                   "blocks.0.mlp.fc1.weight", "norm.weight")
 
 
-class EncoderError(ValueError):
+class EncoderError(UserError, ValueError):
     """An encoder that cannot be built: bad weights or settings (a one-line message)."""
+
+
+class DinoV2ShapedStub(nn.Module):
+    """Tokens of DINOv2 ViT-L/14's shape at 518 px (37 x 37 of ``out_dim``) from a linear map of the
+    area-averaged image: a stand-in for timing the rest of the model, and for tests, without weights."""
+
+    def __init__(self, out_dim: int):
+        super().__init__()
+        self.out_dim, self.num_tokens, self.image_size = out_dim, 37 * 37, 518
+        self.proj = nn.Linear(3, out_dim)
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        return self.proj(F.interpolate(images, size=(37, 37), mode="area").flatten(2).transpose(1, 2))
 
 
 class TokenFusion(nn.Sequential):

@@ -21,7 +21,7 @@ import torch
 
 from datagen.shards import atomic_write
 
-from .data import accepted_subjects, load_views, view_yaws
+from .data import BACKGROUND, accepted_subjects, load_views, view_yaws
 from .metrics import psnr, ssim
 from .model import PanoLAM
 from .rasterizer import render_views
@@ -58,7 +58,7 @@ def evaluate(model: PanoLAM, data, manifest: dict, split: str = "test", resoluti
              lpips=None, faces=None, limit: int | None = None, progress=None) -> dict:
     """Metrics per subject and view plus their means; ``faces``: the :mod:`panolam.faces` module (CSIM, APD) or None."""
     device = next(model.parameters()).device
-    subjects = accepted_subjects(manifest, split)[:limit]
+    subjects = accepted_subjects(manifest, split, data)[:limit]
     rows, skipped, rec_times, render_times = [], [], [], []
     for key, shard in subjects:
         picked = nearest_views(view_yaws(data, key, shard))
@@ -78,7 +78,7 @@ def evaluate(model: PanoLAM, data, manifest: dict, split: str = "test", resoluti
         res = images.shape[-1]
         t0 = time.perf_counter()
         rgb, _, _ = render_views(g, meta_views.cam2world[None].to(device), meta_views.K[None].to(device),
-                                 res, background=images.new_ones(3))
+                                 res, background=images.new_tensor(BACKGROUND))
         _sync(device)
         render_times.append((time.perf_counter() - t0) / len(idx))
         pred = rgb[0].permute(0, 3, 1, 2).clamp(0, 1)

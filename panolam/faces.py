@@ -37,6 +37,8 @@ from scipy import ndimage
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from datagen.errors import UserError
+
 # EG3D framing of the 5-point mean face (module docstring), in template units.
 CROP_SIDE = 700 / 300
 EYE_DISTANCE = 0.62129
@@ -61,7 +63,7 @@ GENERIC_FACE = {
 }
 
 
-class FaceError(ValueError):
+class FaceError(UserError, ValueError):
     """No usable face (or an unreadable image); the message is one line for the user."""
 
 

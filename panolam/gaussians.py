@@ -17,13 +17,13 @@ Viewers that read the reference 3DGS output (SuperSplat, antimatter15/splat, Spa
 """
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
+
+from datagen.shards import atomic_write
 
 SH_C0 = 0.28209479177387814
 PLY_PROPERTIES = ("x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
@@ -42,7 +42,7 @@ _PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short":
 
 @dataclass
 class Gaussians:
-    """N activated 3D Gaussians (shapes and units in the module docstring). No batch dimension."""
+    """Activated 3D Gaussians: one set (N, ...) or a batch (B, N, ...); shapes and units in the module docstring."""
 
     means: torch.Tensor
     quats: torch.Tensor
@@ -115,21 +115,16 @@ def _ply_header(n: int) -> bytes:
     return ("\n".join(lines) + "\n").encode("ascii")
 
 
+def ply_bytes(g: Gaussians) -> bytes:
+    """``g`` encoded as a 3DGS PLY file."""
+    return _ply_header(len(g)) + ply_vertex_table(g).tobytes()
+
+
 def save_ply(path, g: Gaussians) -> Path:
-    """Write ``g`` as a 3DGS PLY at ``path``, atomically (a temporary file in the same folder, then a rename)."""
+    """Write ``g`` as a 3DGS PLY at ``path``, atomically (a temporary name, then a rename)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    payload = _ply_header(len(g)) + ply_vertex_table(g).tobytes()
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(payload)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write(path, ply_bytes(g))
     return path
 
 

@@ -22,7 +22,7 @@ from datagen.errors import UserError
 from datagen.shards import atomic_write
 
 from .data import BACKGROUND
-from .gaussians import Gaussians, save_ply
+from .gaussians import Gaussians, ply_bytes
 from .metrics import psnr
 from .model import PanoLAM
 from .rasterizer import render_views
@@ -108,16 +108,12 @@ def _mp4(frames: list[np.ndarray], fps: int) -> bytes:
     return buf.getvalue()
 
 
-def write_turntable(path: Path, frames: list[np.ndarray], fps: int = 24) -> None:
-    """The frames as an MP4 video or an animated GIF, by ``path``'s suffix."""
-    if path.suffix.lower() == ".mp4":
-        data = _mp4(frames, fps)
-    else:
-        images = [Image.fromarray(f) for f in frames]
-        data = _encoded(images[0], format="GIF", save_all=True, append_images=images[1:], duration=int(1000 / fps),
-                        loop=0)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(path, data)
+def encode_turntable(suffix: str, frames: list[np.ndarray], fps: int = 24) -> bytes:
+    """The frames as an MP4 video or an animated GIF, by the file ``suffix``."""
+    if suffix.lower() == ".mp4":
+        return _mp4(frames, fps)
+    images = [Image.fromarray(f) for f in frames]
+    return _encoded(images[0], format="GIF", save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0)
 
 
 def run(model: PanoLAM, image: np.ndarray, out_ply: Path | None, turntable: Path | None = None,
@@ -136,13 +132,16 @@ def run(model: PanoLAM, image: np.ndarray, out_ply: Path | None, turntable: Path
     render_ms = (time.perf_counter() - t0) * 1000 / len(views)
     frames_kept = render_set(kept, views, resolution)
     loss_db = float(psnr(frames_kept, frames_full).mean())
+    outputs = {}  # everything is encoded before anything is written
     if out_ply is not None:
-        save_ply(out_ply, kept.detach().to("cpu"))
+        outputs[out_ply] = ply_bytes(kept.detach().to("cpu"))
     if turntable is not None:
-        write_turntable(turntable, to_uint8(frames_kept))
+        outputs[turntable] = encode_turntable(turntable.suffix, to_uint8(frames_kept))
     if views_dir is not None:
         named = ["front", "left", "back", "right"]
-        views_dir.mkdir(parents=True, exist_ok=True)
         for name, img in zip(named, to_uint8(render_set(kept, named_views(named), resolution))):
-            atomic_write(views_dir / f"{name}.png", _encoded(Image.fromarray(img), format="PNG"))
+            outputs[views_dir / f"{name}.png"] = _encoded(Image.fromarray(img), format="PNG")
+    for path, data in outputs.items():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write(path, data)
     return InferenceReport(len(full), len(kept), loss_db, seconds, render_ms)

@@ -28,6 +28,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from datagen.errors import UserError
+
 SSIM_WINDOW = 11
 SSIM_SIGMA = 1.5
 SSIM_C1 = 0.01 ** 2
@@ -58,7 +60,7 @@ _SHIFT = (-0.030, -0.088, -0.188)  # LPIPS ScalingLayer, applied to inputs in [-
 _SCALE = (0.458, 0.448, 0.450)
 
 
-class MetricError(RuntimeError):
+class MetricError(UserError, RuntimeError):
     """A metric cannot be computed as asked (missing or mismatched weight files)."""
 
 

@@ -37,6 +37,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from datagen.cameras import ray_range, rays
+from datagen.errors import UserError
 from datagen.gans.triplane import OSGDecoder, crop_outside, sample_planes
 from datagen.render import RenderSettings, render_rays
 
@@ -217,7 +218,7 @@ class PanoLAM(nn.Module):
         decoder = loaded.generator.decoder
         first = decoder.net[0]
         if first.weight.shape[1] != cfg.triplane_channels:
-            raise ValueError(f"{cfg.spherehead_checkpoint}: SphereHead planes have {first.weight.shape[1]} channels, "
+            raise UserError(f"{cfg.spherehead_checkpoint}: SphereHead planes have {first.weight.shape[1]} channels, "
                              f"the config asks for {cfg.triplane_channels}")
         decoder.requires_grad_(False)
         return decoder, float(loaded.rendering_kwargs["box_warp"])
@@ -267,10 +268,11 @@ class PanoLAM(nn.Module):
 
     # -- the tri-plane branch's own image -------------------------------------------------------------
     def render_triplane(self, planes: torch.Tensor, cam2world: torch.Tensor, K_norm: torch.Tensor,
-                        resolution: Optional[int] = None):
-        """Volume-render planes (B, ...) from cameras (B, V, 4, 4) / (B, V, 3, 3) -> RGB (B, V, 3, r, r), alpha (B, V, 1, r, r).
+                        radius: torch.Tensor, resolution: Optional[int] = None):
+        """Volume-render planes (B, ...) seen by cameras (B, V, 4, 4), (B, V, 3, 3) at ``radius`` (B, V)
+        from their look-at pivot -> RGB (B, V, 3, r, r), alpha (B, V, 1, r, r).
 
-        Deterministic sampling on the cameras' EG3D ray ranges; RGB is the decoder's first 3
+        Deterministic sampling on EG3D's ray ranges moved with each radius; RGB is the decoder's first 3
         feature channels, in [0, 1] (over a black background).
         """
         cfg = self.cfg
@@ -279,7 +281,7 @@ class PanoLAM(nn.Module):
         origins, dirs = rays(cam2world.reshape(b * v, 4, 4).float().cpu(), K_norm.reshape(b * v, 3, 3).float().cpu(), r)
         origins = origins.reshape(b, v * r * r, 3).to(planes.device)
         dirs = dirs.reshape(b, v * r * r, 3).to(planes.device)
-        near, far = ray_range(cam2world[..., :3, 3].norm(dim=-1).detach().cpu().numpy())
+        near, far = ray_range(radius.detach().cpu().numpy())
         near = torch.from_numpy(np.repeat(near.reshape(b, v), r * r, axis=1)).float()
         far = torch.from_numpy(np.repeat(far.reshape(b, v), r * r, axis=1)).float()
         decoder, box = self.triplane_decoder, self.box_warp

@@ -22,6 +22,8 @@ import scipy.sparse
 import torch
 from scipy.spatial import ConvexHull
 
+from datagen.errors import UserError
+
 ASSETS = Path(__file__).with_name("assets")
 REGENERATE = "python scripts/make_head_template.py"
 PAPER_VERTICES = 5023
@@ -34,7 +36,7 @@ NECK_CUT_Y = -0.46  # the neck is capped by this plane, just inside the generato
 RAY_STEP = 0.003  # march step before bisection; thinner protrusions than this can be missed
 
 
-class TemplateError(ValueError):
+class TemplateError(UserError, ValueError):
     """A template file is missing, unreadable, unsafe or has the wrong contents."""
 
 

@@ -12,14 +12,16 @@ perceptual term is LPIPS when its weights are given, otherwise D-SSIM ``(1 - SSI
 says which).
 
 Optimizer: Adam, linear warm-up then cosine decay, gradient-norm clipping; bf16 autocast on CUDA.
-A checkpoint (written atomically) holds model, optimizer, scheduler, RNG states, step and both
-configs; since the data order is a pure function of (seed, sample index), resuming continues
-exactly. Several processes (``torchrun`` or ``panolam train --nproc N``) average gradients with
+A checkpoint (written atomically) holds model, optimizer, scheduler, RNG states, step, both configs
+and what the run trains on (manifest and dataset hashes, the training subjects); since the data
+order is a pure function of (seed, sample index), resuming continues exactly, and a resume with
+another manifest is refused. Several processes (``torchrun`` or ``panolam train --nproc N``) average gradients with
 torch.distributed (gloo on CPU, nccl on CUDA); each takes its own slice of every global batch.
 """
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import math
 import os
 import time
@@ -32,17 +34,20 @@ import torch.distributed as dist
 import torch.nn.functional as F
 
 from datagen.errors import UserError
+from labeling_tool.manifest import read_manifest
 
 from .config import ModelConfig
 from .data import BACKGROUND, TrainingSamples, Views, collate, resized
-from .metrics import psnr, ssim
+from .metrics import dssim_loss, psnr
 from .model import PanoLAM, Reconstruction
 from .rasterizer import render_views
 
 CHECKPOINT = "checkpoint.pt"
+HISTORY_KEPT = 10_000  # most recent per-step log entries carried in a checkpoint (TensorBoard has them all)
+PATH_FIELDS = ("encoder_weights", "template", "spherehead_checkpoint")  # may move between machines
 
 
-class TrainingError(RuntimeError):
+class TrainingError(UserError, RuntimeError):
     """Training cannot go on (non-finite loss, incompatible checkpoint)."""
 
 
@@ -91,7 +96,7 @@ class Perceptual:
     def __call__(self, pred, target):
         if self.lpips is not None:
             return self.lpips(pred, target).mean()
-        return ((1 - ssim(pred, target)) / 2).mean()
+        return dssim_loss(pred, target)
 
 
 def _flat(x: torch.Tensor) -> torch.Tensor:
@@ -130,7 +135,7 @@ def compute_losses(model: PanoLAM, batch: Views, cfg: TrainConfig, perceptual: P
     if rec.planes is not None:
         planes = rec.planes.float()
         r, n = core.cfg.triplane_render_resolution, core.cfg.triplane_render_views
-        rgb_t, _ = core.render_triplane(planes, cam2world[:, :n], K[:, :n], r)
+        rgb_t, _ = core.render_triplane(planes, cam2world[:, :n], K[:, :n], batch.radius[:, 1:][:, :n], r)
         premultiplied = _flat(targets[:, :n] - (1 - masks[:, :n]) * bg.view(1, 1, 3, 1, 1))
         target_t = F.interpolate(premultiplied, size=(r, r), mode="area").view_as(rgb_t)
         parts["l1_triplane"] = (rgb_t - target_t).abs().mean()
@@ -138,12 +143,11 @@ def compute_losses(model: PanoLAM, batch: Views, cfg: TrainConfig, perceptual: P
         total = total + cfg.lambda_triplane_rgb * (cfg.lambda_l1 * parts["l1_triplane"] +
                                                    cfg.lambda_perceptual * parts["perceptual_triplane"])
         renders["triplane"] = rgb_t
-        if batch.planes is not None:
-            gan = batch.planes.to(planes)
-            if gan.shape[:4] == planes.shape[:4]:
-                gan = F.interpolate(gan.flatten(0, 3), size=planes.shape[-2:], mode="area").view_as(planes)
-                parts["planes"] = (planes - gan).abs().mean()
-                total = total + cfg.lambda_planes * parts["planes"]
+        if batch.planes is not None and batch.planes.shape[:4] == planes.shape[:4]:
+            gan = batch.planes.to(planes).flatten(0, 2)  # SphereHead's (B, 2, 3, C, R, R) -> (B 2 3, C, R, R)
+            gan = F.interpolate(gan, size=planes.shape[-2:], mode="area").view_as(planes)
+            parts["planes"] = (planes - gan).abs().mean()
+            total = total + cfg.lambda_planes * parts["planes"]
     with torch.no_grad():
         parts["psnr_dense"] = psnr(_flat(renders["dense"]).clamp(0, 1), _flat(targets)).mean()
     return total, parts, renders
@@ -159,13 +163,16 @@ def lr_factor(step: int, cfg: TrainConfig) -> float:
 
 
 def save_checkpoint(out: Path, model, optimizer, scheduler, step: int, model_cfg: ModelConfig, cfg: TrainConfig,
-                    history: list) -> Path:
-    """Write ``out/checkpoint.pt`` atomically (temporary name, then rename)."""
+                    history: list, data: Optional[dict] = None) -> Path:
+    """Write ``out/checkpoint.pt`` atomically (temporary name, then rename).
+
+    ``data``: what the run trains on (:func:`training_data`), checked on resume and by evaluation.
+    """
     core = model.module if hasattr(model, "module") else model
     state = {"format": "panolam-checkpoint/1", "step": step, "model": core.state_dict(),
              "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
              "rng": torch.get_rng_state(), "model_config": model_cfg.to_dict(), "train_config": cfg.to_dict(),
-             "history": history}
+             "history": history[-HISTORY_KEPT:], "data": data or {}}
     path = out / CHECKPOINT
     tmp = path.with_name(f".{path.name}.tmp")
     torch.save(state, tmp)
@@ -189,10 +196,27 @@ def read_checkpoint(path) -> dict:
     return state
 
 
+def training_data(dataset: TrainingSamples, manifest) -> dict:
+    """The identity of a run's training data: manifest and dataset hashes, the training subjects."""
+    m = read_manifest(manifest)
+    return {"manifest": str(manifest), "manifest_version": m["header"].get("version"),
+            "manifest_sha256": hashlib.sha256(Path(manifest).read_bytes()).hexdigest(),
+            "dataset_index_sha256": m["header"].get("dataset_index_sha256"),
+            "subjects": [key for key, _ in dataset.subjects]}
+
+
+def _same_config(a: dict, b: dict) -> bool:
+    """Equal model configs, file locations aside (the weights they name are in the checkpoint)."""
+    return {k: v for k, v in a.items() if k not in PATH_FIELDS} == {k: v for k, v in b.items() if k not in PATH_FIELDS}
+
+
 def load_model(path, device="cpu", **overrides) -> PanoLAM:
-    """The trained model of a checkpoint, in eval mode."""
+    """The trained model of a checkpoint, in eval mode; ``overrides`` replace config fields (file paths, M_D)."""
     state = read_checkpoint(path)
-    cfg = ModelConfig.from_dict(state["model_config"]).replace(**overrides)
+    try:
+        cfg = ModelConfig.from_dict(state["model_config"]).replace(**overrides)
+    except (TypeError, ValueError) as e:
+        raise UserError(f"{path}: its model config does not fit this version ({e})") from None
     model = PanoLAM(cfg)
     try:
         model.load_state_dict(state["model"])
@@ -207,6 +231,38 @@ def _distributed() -> tuple[int, int]:
     if dist.is_available() and dist.is_initialized():
         return dist.get_rank(), dist.get_world_size()
     return 0, 1
+
+
+def check_start(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume: bool):
+    """What a run checks before it starts (UserError on a mistake, nothing written).
+
+    Returns the checkpoint to resume (or None), the training samples and the data identity.
+    """
+    out = Path(out)
+    state = None
+    if resume:
+        state = read_checkpoint(out)
+        if not _same_config(state["model_config"], model_cfg.to_dict()):
+            raise UserError(f"{out}: the checkpoint was trained with config {state['model_config']['name']!r}; "
+                            f"resume with the same config")
+    elif (out / CHECKPOINT).exists():
+        raise UserError(f"{out} already holds a run; pass --resume to continue it or choose another --out")
+    dataset = TrainingSamples(data, manifest, "train", cfg.views_per_sample, cfg.render_resolution, cfg.seed,
+                              input_resolution=model_cfg.image_size)
+    data_info = training_data(dataset, manifest)
+    if state is not None and state.get("data", {}).get("manifest_sha256") not in (None, data_info["manifest_sha256"]):
+        raise UserError(f"{out}: this run trains on manifest {state['data'].get('manifest_version')!r} "
+                        f"({state['data'].get('manifest')}); resume it with that manifest")
+    return state, dataset, data_info
+
+
+def _agreed(world: int, device, *flags: bool) -> list[bool]:
+    """Each flag, true on any process (one all-reduce; the flags themselves with a single process)."""
+    if world == 1:
+        return list(flags)
+    t = torch.tensor([float(f) for f in flags], device=device)
+    dist.all_reduce(t, op=dist.ReduceOp.MAX)
+    return [bool(v) for v in t.tolist()]
 
 
 def sample_indices(step: int, cfg: TrainConfig, rank: int, world: int) -> list[int]:
@@ -237,16 +293,7 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
     rank, world = _distributed()
     out = Path(out)
     torch.manual_seed(cfg.seed)
-    state = None
-    if resume:
-        state = read_checkpoint(out)
-        if state["model_config"] != model_cfg.to_dict():
-            raise UserError(f"{out}: the checkpoint was trained with config {state['model_config']['name']!r}; "
-                            f"resume with the same config")
-    elif (out / CHECKPOINT).exists():
-        raise UserError(f"{out} already holds a run; pass --resume to continue it or choose another --out")
-    dataset = TrainingSamples(data, manifest, "train", cfg.views_per_sample, cfg.render_resolution, cfg.seed,
-                              input_resolution=model_cfg.image_size)
+    state, dataset, data_info = check_start(data, manifest, model_cfg, cfg, out, resume)
     model = PanoLAM(model_cfg).to(device)
     params = [p for p in model.parameters() if p.requires_grad]
     optimizer = torch.optim.Adam(params, lr=cfg.lr, betas=cfg.betas)
@@ -269,22 +316,33 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
         _log_text(out, f"perceptual loss: {perceptual.name}; {len(dataset)} training subjects; "
                        f"{world} process(es); start at step {step}")
     bar = _progress(progress and rank == 0, step, cfg.steps)
-    started, entry = time.monotonic(), {}
+    started, entry, start = time.monotonic(), {}, step
     model.train()
     for batch in loader:
         batch = batch.to(device)
         t0 = time.perf_counter()
         loss, parts, renders = compute_losses(model, batch, cfg, perceptual, autocast=device.startswith("cuda"))
-        if not torch.isfinite(loss):
+        if step == start and rank == 0:
+            _log_text(out, "tri-plane feature loss (lambda_6): " + (
+                "on (the dataset stores SphereHead planes)" if "planes" in parts else
+                "off (no SphereHead planes of this layout in the dataset, or no tri-plane branch)"))
+        # Every process takes the same decisions: a bad loss anywhere or the time limit stops them all.
+        bad_loss, out_of_time = _agreed(world, device, not bool(torch.isfinite(loss)),
+                                        cfg.time_limit_s is not None and time.monotonic() - started > cfg.time_limit_s)
+        if bad_loss:
             bad = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in parts.items())
-            raise TrainingError(f"non-finite loss at step {step} (subjects {batch.key}): {bad}")
+            raise TrainingError(f"non-finite loss at step {step} (subjects {batch.key} on process {rank}): {bad}")
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        grad_norm = torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)
+        grad_norm = torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)  # of the averaged gradients: agreed
+        if not torch.isfinite(grad_norm):
+            raise TrainingError(f"non-finite gradient at step {step} (subjects {batch.key} on process {rank}); "
+                                f"the last checkpoint is intact")
+        lr = scheduler.get_last_lr()[0]
         optimizer.step()
         scheduler.step()
         step += 1
-        entry = {"step": step, "loss": float(loss.detach()), "lr": scheduler.get_last_lr()[0], "grad_norm": float(grad_norm),
+        entry = {"step": step, "loss": float(loss.detach()), "lr": lr, "grad_norm": float(grad_norm),
                  "seconds": time.perf_counter() - t0, **{k: float(v.detach()) for k, v in parts.items()}}
         history.append(entry)
         if bar is not None:
@@ -299,10 +357,9 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
                                f"lr {entry['lr']:.2e}, {entry['seconds']:.2f} s/step", echo=bar is None)
             if step % cfg.image_every == 0 or step == 1:
                 writer.add_image("train/input|dense|coarse|target", _grid(batch, renders), step)
-        stop = (cfg.time_limit_s is not None and time.monotonic() - started > cfg.time_limit_s) or \
-            (until is not None and step >= until)
+        stop = out_of_time or (until is not None and step >= until)
         if rank == 0 and (step % cfg.checkpoint_every == 0 or step == cfg.steps or stop):
-            save_checkpoint(out, model, optimizer, scheduler, step, model_cfg, cfg, history)
+            save_checkpoint(out, model, optimizer, scheduler, step, model_cfg, cfg, history, data_info)
         if stop:
             break
     if bar is not None:

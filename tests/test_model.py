@@ -3,10 +3,10 @@ from __future__ import annotations
 
 import pytest
 import torch
-import torch.nn as nn
 
 from panolam import model as model_module
 from panolam.config import ModelConfig, preset
+from panolam.encoder import DinoV2ShapedStub
 from panolam.model import PanoLAM, parameter_count, virtual_ray_samples
 from panolam.rasterizer import render_views
 from tests.conftest import gan_fixture
@@ -47,7 +47,7 @@ def test_tiny_forward_backward_on_512_image():
     c2w, K = front_cameras(2)
     rgb, alpha, _ = render_views(rec.dense, c2w, K, 24)
     rgb_c, _, _ = render_views(rec.coarse, c2w, K, 24)
-    trgb, talpha = m.render_triplane(rec.planes, c2w, K)
+    trgb, talpha = m.render_triplane(rec.planes, c2w, K, torch.full((2, 2), 2.7))
     assert rgb.shape == (2, 2, 24, 24, 3) and trgb.shape == (2, 2, 3, 12, 12) and talpha.shape == (2, 2, 1, 12, 12)
     loss = rgb.mean() + alpha.mean() + rgb_c.mean() + trgb.mean()
     loss.backward()
@@ -122,6 +122,18 @@ def test_nan_and_extreme_inputs_give_finite_gaussians():
         assert torch.isfinite(t).all()
 
 
+def test_spherical_triplane_query_has_finite_gradients_on_its_poles_and_centre():
+    from datagen.gans.triplane import SPHERE_A, SPHERE_B, sample_planes
+    planes = torch.randn(1, 2, 3, 4, 8, 8, requires_grad=True)
+    # the centre, and points on the polar axes of both spheres (where the angles are undefined)
+    axes = torch.stack([SPHERE_A @ torch.tensor([0.0, 0.0, 1.0]), SPHERE_B @ torch.tensor([0.0, 0.0, 1.0])])
+    points = torch.cat([torch.zeros(1, 3), 0.3 * axes, -0.2 * axes, torch.rand(4, 3) - 0.5])[None].requires_grad_()
+    feats = sample_planes("spherehead", planes, points, box_warp=1.0)
+    assert torch.isfinite(feats).all()
+    feats.square().sum().backward()
+    assert torch.isfinite(points.grad).all() and torch.isfinite(planes.grad).all()
+
+
 def test_spherehead_decoder_is_frozen_and_sets_box():
     path = gan_fixture("spherehead", ".pkl")
     m = small(spherehead_checkpoint=str(path))
@@ -129,22 +141,9 @@ def test_spherehead_decoder_is_frozen_and_sets_box():
     assert m.box_warp == 1.0
     rec = m(torch.rand(1, 3, 64, 64))
     c2w, K = front_cameras(1)
-    rgb, _ = m.render_triplane(rec.planes, c2w, K)
+    rgb, _ = m.render_triplane(rec.planes, c2w, K, torch.full(c2w.shape[:2], 2.7))
     rgb.mean().backward()
     assert m.triplane.queries.grad is not None and m.triplane.queries.grad.abs().sum() > 0
-
-
-class _StubEncoder(nn.Module):
-    """Stands in for DINOv2 ViT-L/14 at 518 px: 37 x 37 tokens of C_t channels."""
-
-    def __init__(self, out_dim):
-        super().__init__()
-        self.out_dim, self.num_tokens, self.image_size = out_dim, 37 * 37, 518
-        self.proj = nn.Linear(3, out_dim)
-
-    def forward(self, x):
-        x = nn.functional.interpolate(x, size=(37, 37), mode="area")
-        return self.proj(x.flatten(2).transpose(1, 2))
 
 
 def test_full_config_builds_with_paper_sizes(monkeypatch):
@@ -152,7 +151,7 @@ def test_full_config_builds_with_paper_sizes(monkeypatch):
     assert (cfg.encoder, cfg.encoder_layers, cfg.token_dim, cfg.blocks, cfg.heads) == ("dinov2", (5, 12, 18, 24), 512, 8, 16)
     assert (cfg.template_vertices, cfg.triplane_resolution, cfg.ray_samples, cfg.dense_points) == (5023, 64, 32, 10000)
     assert (cfg.coarse_offset_m, cfg.dense_offset_m) == (0.15, 0.056)
-    monkeypatch.setattr(model_module, "build_encoder", lambda kind, weights, out_dim, **kw: _StubEncoder(out_dim))
+    monkeypatch.setattr(model_module, "build_encoder", lambda kind, weights, out_dim, **kw: DinoV2ShapedStub(out_dim))
     m = PanoLAM(cfg)
     assert len(m.template_points) == 5023 and abs(m.dense_count - 10000) / 10000 < 0.05
     assert m.triplane.queries.shape == (6 * 64 * 64, 512)

@@ -2,8 +2,10 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -38,10 +40,10 @@ def test_sample_choice_is_a_pure_function_of_seed_and_index(curated):
     data, manifest = curated
     a = TrainingSamples(data, manifest, "train", 3, 16, seed=5)
     b = TrainingSamples(data, manifest, "train", 3, 16, seed=5)
-    picks = [a.pick(g) for g in range(9)]
-    assert picks == [b.pick(g) for g in range(9)]
+    picks = [(a.pick(g), a.view_choice(g, 8)) for g in range(9)]
+    assert picks == [(b.pick(g), b.view_choice(g, 8)) for g in range(9)]
     assert {p[0] for p in picks[:3]} == set(a.subjects)  # an epoch visits every subject once
-    assert all(len(set(v)) == 3 for _, v in picks)
+    assert all(len(set(v)) == 3 and max(v) < 8 for _, v in picks)
     item = a[0]
     assert item.images.shape == (3, 3, 16, 16) and item.masks.shape == (3, 1, 16, 16)
     assert 0 <= float(item.images.min()) and float(item.images.max()) <= 1
@@ -51,7 +53,8 @@ def test_input_view_keeps_the_stored_detail_targets_are_resized(curated):
     from datagen.shards import decode_sample, read_fields
     data, manifest = curated
     samples = TrainingSamples(data, manifest, "train", 3, 16, seed=5, input_resolution=32)
-    (key, shard), views = samples.pick(0)
+    key, shard = samples.pick(0)
+    views = samples.view_choice(0, 8)
     item = samples[0]
     assert item.inputs.shape == (3, 32, 32) and item.images.shape == (3, 3, 16, 16)
     stored = decode_sample(key, read_fields(data, shard, key), views=views[:1], depth=False)
@@ -102,6 +105,52 @@ def test_non_finite_loss_names_step_and_subjects(curated, tmp_path, monkeypatch)
         train(data, manifest, MODEL, FAST, tmp_path / "n", progress=False)
 
 
+def test_non_finite_gradient_stops_before_the_update(curated, tmp_path, monkeypatch):
+    data, manifest = curated
+    real = train_module.compute_losses
+
+    def poisoned(model, *a, **k):
+        loss, parts, renders = real(model, *a, **k)
+        p = next(model.parameters())
+        return loss + torch.sqrt(p.sum() * 0), parts, renders  # the same value, a NaN gradient
+    monkeypatch.setattr(train_module, "compute_losses", poisoned)
+    with pytest.raises(TrainingError, match=r"non-finite gradient at step 0"):
+        train(data, manifest, MODEL, FAST, tmp_path / "g", progress=False)
+    assert not (tmp_path / "g" / "checkpoint.pt").exists()
+
+
+def test_triplane_feature_loss_on_spherehead_planes(curated):
+    from panolam.data import Views
+    from panolam.model import PanoLAM
+    from panolam.train import Perceptual
+    data, manifest = curated
+    torch.manual_seed(0)
+    model = PanoLAM(MODEL)
+    batch = collate([TrainingSamples(data, manifest, "train", 3, 16, 0, input_resolution=64)[g] for g in (0, 1)])
+    r = MODEL.triplane_resolution
+    planes = torch.randn(2, 2, 3, MODEL.triplane_channels, 2 * r, 2 * r)  # SphereHead's layout, stored larger
+    batch = Views(**{**{f: getattr(batch, f) for f in batch.__dataclass_fields__}, "planes": planes})
+    loss, parts, _ = train_module.compute_losses(model, batch, FAST, Perceptual(FAST, "cpu"))
+    assert "planes" in parts and torch.isfinite(parts["planes"]) and parts["planes"] > 0.1
+    loss.backward()
+    assert model.triplane.queries.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("model, protocol, kept", [("eg3d", "frontal", False), ("spherehead", "360", True)])
+def test_only_spherehead_planes_reach_training(model, protocol, kept, tmp_path):
+    from datagen.shards import read_index
+    from panolam.data import load_views
+    from tests.conftest import gan_fixture
+    data = tmp_path / model
+    run_sample(tiny_spec(data, gan=model, checkpoint=str(gan_fixture(model, ".pkl")), protocol=protocol, subjects=1,
+                         views=2, resolution=32, generator_options={"save_planes": 8}), progress=False)
+    planes = load_views(data, read_index(data)["shards"][0]["subjects"][0], 0).planes
+    if kept:  # SphereHead's (2, D, 32, R, R), in float32
+        assert planes.shape[0] == 2 and planes.shape[2:] == (32, 8, 8) and planes.dtype == torch.float32
+    else:  # EG3D's (3, 32, R, R): the tri-plane branch is distilled from SphereHead only
+        assert planes is None
+
+
 def _ddp_worker(rank, port, data, manifest, out, q):
     import os
     import torch.distributed as dist
@@ -140,14 +189,72 @@ def test_eval_and_cli_end_to_end(curated, tmp_path):
     assert 5 < result["per_view"]["all"]["psnr"] < 60 and len(result["rows"]) == 4
 
 
+def _cli(*argv, cwd=None):
+    return subprocess.run([sys.executable, "-m", "panolam.cli", *map(str, argv)], capture_output=True, text=True,
+                          cwd=cwd)
+
+
+def test_resume_keeps_the_schedule_the_data_and_the_manifest(curated, tmp_path):
+    data, manifest = curated
+    run = tmp_path / "run"
+    base = ("train", "--data", data, "--manifest", manifest, "--out", run, "--render-resolution", "16",
+            "--views-per-sample", "3", "--batch-size", "1", "--no-progress")
+    first = _cli(*base, "--steps", "2", "--time-limit", "0.001")  # stops after its first step
+    assert first.returncode == 0, first.stderr
+    assert read_checkpoint(run)["step"] == 1
+    for extra, message in ((("--steps", "3"), "--steps 3 differs from this run's 2"),
+                           (("--config", "full"), "is a 'tiny' run"),
+                           (("--steps", "0"), "must be at least 1")):
+        r = _cli(*base, "--resume", *extra)
+        assert r.returncode == 2 and message in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    other = tmp_path / "other-v1.json"
+    m = json.loads(Path(manifest).read_text())
+    m["header"]["version"] = "other-v1"
+    other.write_text(json.dumps(m))
+    r = _cli(*[a if a != manifest else other for a in base], "--resume")
+    assert r.returncode == 2 and "resume it with that manifest" in r.stderr, r.stderr
+    done = _cli(*base, "--resume", "--steps", "2")  # the same value is fine
+    assert done.returncode == 0, done.stderr
+    assert read_checkpoint(run)["step"] == 2
+    assert read_checkpoint(run)["data"]["subjects"] == [k for k, _ in TrainingSamples(
+        data, manifest, "train", 3, 16, 0).subjects]
+
+
+def test_eval_warns_when_it_scores_training_subjects(curated, tmp_path):
+    data, manifest = curated
+    run = tmp_path / "run"
+    train(data, manifest, MODEL, dataclasses.replace(FAST, steps=1), run, progress=False)
+    r = _cli("eval", "--data", data, "--manifest", manifest, "--split", "train", "--ckpt", run, "--no-faces",
+             "--limit", "1")
+    assert r.returncode == 0, r.stderr
+    assert "1 of the evaluated subjects were training subjects" in r.stderr
+    assert "WARNING" in (run / "eval-train" / "eval.md").read_text()
+
+
+def test_nproc_mistakes_are_one_line_before_any_process_starts(curated, tmp_path):
+    data, manifest = curated
+    run = tmp_path / "run"
+    train(data, manifest, MODEL, dataclasses.replace(FAST, steps=1), run, progress=False)
+    r = _cli("train", "--data", data, "--manifest", manifest, "--out", run, "--nproc", "2")
+    assert r.returncode == 2 and "already holds a run" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
 @pytest.mark.parametrize("argv, message", [
     (["train", "--data", "D", "--manifest", "M", "--out", "O", "--config", "huge"], "unknown config"),
-    (["eval", "--data", "D", "--manifest", "M", "--ckpt", "/nonexistent/run"], "no checkpoint"),
+    (["eval", "--data", "D", "--manifest", "M", "--ckpt", "/nonexistent/run"], "no such manifest"),
     (["infer", "x.png", "--ckpt", "/nonexistent/run", "--out", "h.ply"], "no checkpoint"),
 ])
 def test_cli_errors_are_one_line(argv, message, tmp_path):
     r = subprocess.run([sys.executable, "-m", "panolam.cli", *argv], capture_output=True, text=True, cwd=tmp_path)
     assert r.returncode == 2 and message in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+def test_manifest_of_another_dataset_is_refused_before_anything_is_written(curated, tmp_path, tiny_dataset):
+    data, manifest = curated
+    r = subprocess.run([sys.executable, "-m", "panolam.cli", "train", "--data", str(tiny_dataset), "--manifest",
+                        str(manifest), "--out", str(tmp_path / "run"), "--steps", "1"], capture_output=True, text=True)
+    assert r.returncode == 2 and "compiled for another dataset" in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "run").exists()
 
 
 def test_checkpoint_of_another_config_is_refused(tmp_path):

@@ -67,13 +67,24 @@ SPHERE_B = torch.from_numpy((_rot_y(-np.pi / 2) @ _rot_z(-np.pi / 2.0)).T.astype
 
 
 def _spherical(p):
-    """(theta, phi, r) in [-1, 1] of points (N, M, 3) in the [-1, 1] cube."""
-    r = (p ** 2).sum(dim=-1).sqrt() / math.sqrt(3)
+    """(theta, phi, r) in [-1, 1] of points (N, M, 3) in the [-1, 1] cube.
+
+    On the polar axis and at the centre the angles are undefined; there the values equal the
+    originals' (atan2(0, 0) = 0) and the gradients are finite instead of NaN.
+    """
+    x, y, z = p.unbind(-1)
+    rho2, r2 = x * x + y * y, (p ** 2).sum(dim=-1)
+    r = _safe_sqrt(r2) / math.sqrt(3)
     r = 2.0 * r - 1.0
-    theta = torch.atan2((p[:, :, :2] ** 2).sum(dim=-1).sqrt(), p[:, :, 2]) / math.pi
+    theta = torch.atan2(_safe_sqrt(rho2), torch.where(r2 > 0, z, torch.ones_like(z))) / math.pi
     theta = 2.0 * theta - 1.0
-    phi = torch.atan2(p[:, :, 1], p[:, :, 0]) / math.pi
+    phi = torch.atan2(y, torch.where(rho2 > 0, x, torch.ones_like(x))) / math.pi
     return theta, phi, r
+
+
+def _safe_sqrt(x):
+    """sqrt with a zero gradient (not inf) at 0."""
+    return torch.sqrt(x.clamp_min(1e-30)) * (x > 0)
 
 
 def _sample_2d(planes, coords):
