@@ -356,14 +356,18 @@ def speed_markdown(results: dict, plot_note: str) -> str:
               if n in finals]
     if k_runs:
         lines += [f"## Tri-plane samples per dense point (separate trainings, {finals[k_runs[0][0]]['step']} steps)", "",
-                  "| run | samples per point | PSNR dB | SSIM | reconstruct ms | train s/step | peak MiB |",
-                  "|---|---|---|---|---|---|---|"]
+                  "| run | samples per point | PSNR dB | SSIM | minus `tiny`, dB | reconstruct ms | train s/step | "
+                  "peak MiB |", "|---|---|---|---|---|---|---|---|"]
         for n, k in k_runs:
             r = finals[n]
             label = "1 (the point alone)" if n == "single_point" else f"{k} (4 cameras x K_m = {k // 4})"
-            lines.append(f"| {n} | {label} | {_psnr(r):.2f} | {_ssim(r):.4f} | {r['reconstruct_s_median'] * 1000:.0f} "
-                         f"| {r['train_s_per_step_median']:.1f} | {r['peak_mb']:.0f} |")
-        lines.append("")
+            d = "-" if n == "tiny" or "tiny" not in finals else "{:+.2f} +- {:.2f}".format(
+                *paired_difference(r, finals["tiny"]))
+            lines.append(f"| {n} | {label} | {_psnr(r):.2f} | {_ssim(r):.4f} | {d} | "
+                         f"{r['reconstruct_s_median'] * 1000:.0f} | {r['train_s_per_step_median']:.1f} | "
+                         f"{r['peak_mb']:.0f} |")
+        lines += ["", "Differences are paired per held-out subject (mean +- standard error); within about two "
+                  "standard errors they are noise.", ""]
     if "tiny" in finals and "no_c2f" in finals:
         a, b = finals["tiny"], finals["no_c2f"]
         d, se = paired_difference(a, b)
