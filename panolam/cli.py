@@ -40,15 +40,21 @@ def _at_least(minimum: int):
     return parse
 
 
-def _positive(text: str) -> float:
-    """argparse type: a number above 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be above 0, not {text}")
-    return value
+def _number(accept, requirement: str):
+    """argparse type: a real number for which ``accept`` holds (``requirement`` says which, for the error)."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+        if not accept(value):
+            raise argparse.ArgumentTypeError(f"must be {requirement}, not {text}")
+        return value
+    return parse
+
+
+_positive = _number(lambda v: v > 0, "above 0")
+_opacity = _number(lambda v: 0 <= v < 1, "at least 0 and below 1")
 
 
 def _check_device(device: str) -> None:
@@ -119,7 +125,7 @@ def build_parser() -> OneLineParser:
     p.add_argument("--views", help="directory for front/left/back/right PNG views")
     p.add_argument("--resolution", type=_at_least(8), default=256, help="px of the turntable and views (default 256)")
     p.add_argument("--frames", type=_at_least(1), default=36, help="turntable frames (default 36)")
-    p.add_argument("--prune-opacity", type=float, default=0.02,
+    p.add_argument("--prune-opacity", type=_opacity, default=0.02,
                    help="drop Gaussians below this opacity from the outputs (default 0.02)")
     p.add_argument("--pick", choices=("single", "largest"), default="single",
                    help="with several faces in the photo: refuse (single) or take the largest")
@@ -294,7 +300,9 @@ def cmd_eval(args) -> int:
             notes.append(f"CSIM/APD: not computed ({e}).")
     if faces is not None:
         notes.append("CSIM: cosine similarity of dlib ResNet face embeddings (not ArcFace). APD: mean absolute "
-                     "yaw/pitch/roll difference in degrees from a 68-landmark PnP head-pose estimate.")
+                     "yaw/pitch/roll difference in degrees from a 68-landmark PnP head-pose estimate. CSIM counts the "
+                     "front views whose target has a face dlib finds (the render is read at the target's face box); "
+                     "APD counts the views where a face is found in both, which blurry renders often miss.")
     result = evaluate(model, args.data, manifest, args.split, resolution=args.resolution,
                       lpips=lpips, faces=faces, limit=args.limit)
     out = Path(args.out) if args.out else Path(args.ckpt if Path(args.ckpt).is_dir() else Path(args.ckpt).parent) / \

@@ -4,7 +4,8 @@ Per subject, the input is the view nearest yaw 0 deg and the targets are the vie
 0/90/180/270 deg (the 360 protocol stores these exactly; a subject without a view within
 ``YAW_TOLERANCE`` of each is skipped and counted). Metrics per view on [0, 1] images over the
 dataset background: PSNR, SSIM (11x11 Gaussian window, sigma 1.5), LPIPS when its weights are
-given; CSIM on the front view and APD on the views where a face is found in both images, with
+given; CSIM on the front view where the target has a face (the render is read at the target's
+face box: both share the camera) and APD on the views where a face is found in both images, with
 dlib's models (:mod:`panolam.faces`; not ArcFace and not a 3DMM pose estimator, see there).
 Times: reconstruction (one forward pass) and render per view, medians.
 """
@@ -59,7 +60,7 @@ def evaluate(model: PanoLAM, data, manifest: dict, split: str = "test", resoluti
     """Metrics per subject and view plus their means; ``faces``: the :mod:`panolam.faces` module (CSIM, APD) or None."""
     device = next(model.parameters()).device
     subjects = accepted_subjects(manifest, split, data)[:limit]
-    rows, skipped, rec_times, render_times = [], [], [], []
+    rows, skipped, rec_times, render_times, front_targets = [], [], [], [], []
     for key, shard in subjects:
         picked = nearest_views(view_yaws(data, key, shard))
         if picked is None:
@@ -89,12 +90,17 @@ def evaluate(model: PanoLAM, data, manifest: dict, split: str = "test", resoluti
                    "lpips": None if lp is None else float(lp[j])}
             if faces is not None:
                 a, b = _uint8(pred[j]), _uint8(images[j])
-                row["csim"] = faces.csim(a, b) if name == "front" else None
+                row["csim"] = faces.csim(a, b, box_from_b=True) if name == "front" else None
+                if name == "front":
+                    front_targets.append(b)
                 row["apd"] = faces.apd(a, b)
             rows.append(row)
         if progress is not None:
             progress()
-    return summarize(rows, skipped, rec_times, render_times)
+    result = summarize(rows, skipped, rec_times, render_times)
+    if faces is not None:
+        result["csim_between_subjects"], result["csim_between_subjects_faces"] = faces.csim_between_subjects(front_targets)
+    return result
 
 
 def _sync(device):
@@ -132,6 +138,10 @@ def write_report(result: dict, out: Path, title: str, notes: list[str] = ()) -> 
     lines += ["", "Counted views: " + ", ".join(f"{k} {v}" for k, v in counted.items()) + ".",
               f"Reconstruction {result['reconstruct_s_median'] * 1000:.1f} ms (median, one forward pass); "
               f"render {result['render_ms_per_view_median']:.1f} ms per view (median).", ""]
+    if "csim_between_subjects" in result:
+        lines += [f"CSIM between the front targets of different subjects: {fmt(result['csim_between_subjects'])} "
+                  f"({result['csim_between_subjects_faces']} faces): what an identity-blind prediction scores; "
+                  "CSIM above it shows identity.", ""]
     lines += list(notes)
     md, js = out / "eval.md", out / "eval.json"
     atomic_write(md, ("\n".join(lines) + "\n").encode())

@@ -358,13 +358,15 @@ class FaceEmbedder:
     are comparable between our own runs only, not with published CSIM numbers.
     """
 
-    def embed(self, image) -> np.ndarray | None:
-        """128-d descriptor of the largest face, or None when no face is found."""
+    def embed(self, image, box: Box | None = None) -> np.ndarray | None:
+        """128-d descriptor of the face in ``box`` (default: the largest face found), or None when no face is found."""
         u8 = _rgb_u8(image)
-        faces = detect_faces(u8)
-        if not faces:
-            return None
-        shape = _predictor(5)(u8, _dlib_rect(faces[0]))
+        if box is None:
+            faces = detect_faces(u8)
+            if not faces:
+                return None
+            box = faces[0]
+        shape = _predictor(5)(u8, _dlib_rect(box))
         return np.asarray(_resnet().compute_face_descriptor(u8, shape), dtype=np.float64)
 
 
@@ -373,14 +375,36 @@ def _embedder() -> FaceEmbedder:
     return FaceEmbedder()
 
 
-def csim(img_a, img_b, embedder: FaceEmbedder | None = None) -> float:
+def csim(img_a, img_b, embedder: FaceEmbedder | None = None, box_from_b: bool = False) -> float:
     """Identity similarity: cosine of dlib ResNet embeddings (not ArcFace, see FaceEmbedder), in
-    [-1, 1]; nan when either image has no face (the caller counts and reports those skipped)."""
+    [-1, 1]; nan when either image has no face (the caller counts and reports those skipped).
+
+    ``box_from_b``: the face box found in ``img_b`` locates the face in ``img_a`` too (landmarks
+    are still fitted in each image), for a render and its target seen from the same camera: a
+    blurry render the detector misses is still compared where the target's face is."""
     embedder = embedder or _embedder()
-    a, b = embedder.embed(img_a), embedder.embed(img_b)
+    if box_from_b:
+        faces = detect_faces(img_b)
+        if not faces:
+            return math.nan
+        a, b = embedder.embed(img_a, faces[0]), embedder.embed(img_b, faces[0])
+    else:
+        a, b = embedder.embed(img_a), embedder.embed(img_b)
     if a is None or b is None:
         return math.nan
     return float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))
+
+
+def csim_between_subjects(images, embedder: FaceEmbedder | None = None) -> tuple[float, int]:
+    """Mean CSIM over all pairs of different images, each at its own largest face, and how many
+    faces were found; (nan, n) with fewer than two. Over targets of different subjects this is
+    what an identity-blind prediction scores: a reconstruction shows identity only above it."""
+    embedder = embedder or _embedder()
+    found = [e / np.linalg.norm(e) for e in map(embedder.embed, images) if e is not None]
+    if len(found) < 2:
+        return math.nan, len(found)
+    sim = np.stack(found) @ np.stack(found).T
+    return float(sim[~np.eye(len(found), dtype=bool)].mean()), len(found)
 
 
 def pose_from_landmarks(lm68: np.ndarray, width: int, height: int,

@@ -50,7 +50,7 @@ def render_set(g: Gaussians, views: ViewSet, resolution: int) -> torch.Tensor:
 def reconstruct(model: PanoLAM, image: np.ndarray) -> tuple[Gaussians, float]:
     """image (H, W, 3) float in [0, 1] -> the dense Gaussians and the seconds the forward pass took."""
     device = next(model.parameters()).device
-    x = torch.from_numpy(np.ascontiguousarray(image)).float().permute(2, 0, 1)[None].to(device)
+    x = torch.from_numpy(np.array(image, dtype=np.float32)).permute(2, 0, 1)[None].to(device)
     if device.type == "cuda":
         torch.cuda.synchronize()
     t0 = time.perf_counter()
@@ -75,8 +75,10 @@ class InferenceReport:
 
     def lines(self) -> list[str]:
         return [f"reconstruction {self.reconstruct_s * 1000:.0f} ms; render {self.render_ms:.1f} ms per view",
-                f"kept {self.kept} of {self.gaussians} Gaussians; pruning changes the turntable by "
-                f"{self.prune_psnr_db:.1f} dB PSNR (higher is smaller)"]
+                f"kept all {self.gaussians} Gaussians (none below the opacity threshold)"
+                if self.kept == self.gaussians else
+                f"kept {self.kept} of {self.gaussians} Gaussians; the pruned turntable matches the unpruned "
+                f"one at {self.prune_psnr_db:.1f} dB PSNR"]
 
 
 def _encoded(image: Image.Image, **options) -> bytes:
@@ -126,6 +128,9 @@ def run(model: PanoLAM, image: np.ndarray, out_ply: Path | None, turntable: Path
         raise UserError(f"{turntable}: a turntable is written as {' or '.join(TURNTABLE_FORMATS)}; name it so")
     full, seconds = reconstruct(model, image)
     kept = prune(full, prune_opacity)
+    if len(kept) == 0:
+        raise UserError(f"--prune-opacity {prune_opacity} removes every Gaussian (the most opaque has "
+                        f"{float(full.opacities.max()):.3f}); give a lower threshold")
     views = turntable_views(frames)
     t0 = time.perf_counter()
     frames_full = render_set(full, views, resolution)

@@ -157,6 +157,17 @@ def test_csim(photo):
     assert math.isnan(csim(photo, data.chelsea()))  # a cat: no face
 
 
+@needs_dlib
+def test_csim_of_a_render_the_detector_misses_uses_the_targets_face_box(photo):
+    from scipy import ndimage
+    data = pytest.importorskip("skimage.data")
+    blur = lambda sigma: ndimage.gaussian_filter(photo.astype(np.float32), (sigma, sigma, 0)).astype(np.uint8)  # noqa: E731
+    assert not detect_faces(blur(8)) and math.isnan(csim(blur(8), photo))
+    soft, softer = csim(blur(5), photo, box_from_b=True), csim(blur(12), photo, box_from_b=True)
+    assert 0.5 < softer < soft < 1
+    assert math.isnan(csim(photo, data.chelsea(), box_from_b=True))  # no face in the target
+
+
 def project(yaw, pitch, roll, size=512, fov=faces.TRAINING_FOV_DEG, distance=700.0):
     """68-point array holding GENERIC_FACE seen at these angles (other points left at zero)."""
     rot = Rotation.from_euler("YXZ", [-yaw, -pitch, roll], degrees=True)
@@ -193,3 +204,16 @@ def test_head_pose_and_apd(photo):
     assert math.isnan(apd(photo, blank))
     with pytest.raises(FaceError, match="no face"):
         head_pose(blank)
+
+
+@needs_dlib
+def test_csim_between_subjects_averages_pairs_of_found_faces(photo):
+    from scipy import ndimage
+    data = pytest.importorskip("skimage.data")
+    sim, n = faces.csim_between_subjects([photo, photo, data.chelsea()])
+    assert n == 2 and abs(sim - 1) < 1e-6
+    soft = ndimage.gaussian_filter(photo.astype(np.float32), (3, 3, 0)).astype(np.uint8)
+    sim, n = faces.csim_between_subjects([photo, soft])
+    assert n == 2 and abs(sim - csim(photo, soft)) < 1e-6 and sim < 1
+    sim, n = faces.csim_between_subjects([photo, data.chelsea()])
+    assert n == 1 and math.isnan(sim)

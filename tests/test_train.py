@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -11,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from labeling_tool.manifest import compile_manifest, write_manifest
+from labeling_tool.manifest import compile_manifest, read_manifest, write_manifest
 from panolam import train as train_module
 from panolam.config import preset
 from panolam.data import TrainingSamples, collate
@@ -189,6 +190,25 @@ def test_eval_and_cli_end_to_end(curated, tmp_path):
     assert 5 < result["per_view"]["all"]["psnr"] < 60 and len(result["rows"]) == 4
 
 
+def test_eval_asks_the_face_tools_for_csim_on_front_views_and_apd_on_all(curated):
+    """The face metrics' plumbing, with recording stand-ins for :mod:`panolam.faces` (dlib is tested there)."""
+    from types import SimpleNamespace
+    from panolam.evaluate import evaluate
+    from panolam.model import PanoLAM
+    data, manifest = curated
+    calls = {"csim": [], "apd": [], "between": []}
+    tools = SimpleNamespace(
+        csim=lambda a, b, box_from_b: calls["csim"].append((a.shape, b.shape, box_from_b)) or 0.5,
+        apd=lambda a, b: calls["apd"].append(a.shape) or 2.0,
+        csim_between_subjects=lambda images: calls["between"].append(len(images)) or (0.25, len(images)))
+    torch.manual_seed(0)
+    r = evaluate(PanoLAM(MODEL).eval(), data, read_manifest(manifest), "test", resolution=24, faces=tools)
+    assert calls["csim"] == [((24, 24, 3), (24, 24, 3), True)] and len(calls["apd"]) == 4 and calls["between"] == [1]
+    assert r["per_view"]["front"]["csim"] == 0.5 and math.isnan(r["per_view"]["back"]["csim"])
+    assert r["per_view"]["all"]["apd"] == 2.0 and r["per_view"]["all"]["counted"]["apd"] == 4
+    assert (r["csim_between_subjects"], r["csim_between_subjects_faces"]) == (0.25, 1)
+
+
 def _cli(*argv, cwd=None):
     return subprocess.run([sys.executable, "-m", "panolam.cli", *map(str, argv)], capture_output=True, text=True,
                           cwd=cwd)
@@ -328,3 +348,25 @@ def test_infer_writes_an_mp4_turntable_and_refuses_unknown_formats(untrained_run
     assert frames[0].mean() > 100  # the head over the white background, not an empty video
     r = _infer("framed.png", "--ckpt", untrained_run, "--no-crop", "--turntable", "t.avi", cwd=tmp_path)
     assert r.returncode == 2 and ".mp4" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_infer_prunes_faint_gaussians_and_reports_what_it_costs(untrained_run, tmp_path):
+    import re
+    from PIL import Image
+    from panolam.gaussians import load_ply
+    Image.fromarray(np.full((64, 64, 3), 128, np.uint8)).save(tmp_path / "framed.png")
+    common = ("framed.png", "--ckpt", untrained_run, "--no-crop", "--resolution", "24", "--frames", "2")
+    r = _infer(*common, "--out", "all.ply", "--prune-opacity", "0", cwd=tmp_path)
+    assert r.returncode == 0 and "kept all" in r.stdout, r.stderr
+    opacity = load_ply(tmp_path / "all.ply").opacities
+    threshold = float(opacity.median())
+    r = _infer(*common, "--out", "some.ply", "--prune-opacity", f"{threshold:.6f}", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    kept, of, db = re.search(r"kept (\d+) of (\d+) Gaussians; .* at ([\d.]+) dB PSNR", r.stdout).groups()
+    assert int(of) == len(opacity) and 0 < int(kept) < len(opacity)
+    assert len(load_ply(tmp_path / "some.ply")) == int(kept) and 0 < float(db) < 100
+    above_all = float(opacity.max()) + 1e-4
+    assert above_all < 1
+    r = _infer(*common, "--out", "none.ply", "--prune-opacity", f"{above_all:.6f}", cwd=tmp_path)
+    assert r.returncode == 2 and "removes every Gaussian" in r.stderr and not (tmp_path / "none.ply").exists()
+    assert len(r.stderr.strip().splitlines()) == 1, r.stderr
