@@ -1,6 +1,7 @@
 """The ``panolam`` command line: train on a curated manifest, reconstruct a photo, evaluate.
 
-    panolam train --data D --manifest M --config tiny --out runs/t1 [--resume] [--nproc 2]
+    panolam train --data D --manifest M --config tiny --out runs/t1 [--nproc 2]
+    panolam train --data D --manifest M --resume runs/t1
     panolam infer photo.jpg --ckpt runs/t1 --out head.ply [--turntable head.mp4] [--views DIR]
     panolam eval --data D --manifest M --split test --ckpt runs/t1 [--out DIR]
 
@@ -85,8 +86,9 @@ def _train_options(p):
     p.add_argument("--manifest", required=True, help="curated manifest (label-tool compile)")
     p.add_argument("--config", help=f"model preset, optionally with ablations (default {DEFAULT_CONFIG}): tiny, full, "
                                     "tiny+no_c2f, tiny+single_point, tiny+no_triplane")
-    p.add_argument("--out", required=True, help="run directory (checkpoint, logs, TensorBoard)")
-    p.add_argument("--resume", action="store_true", help="continue the run in --out exactly where it stopped")
+    p.add_argument("--out", help="run directory (checkpoint, logs, TensorBoard)")
+    p.add_argument("--resume", nargs="?", const="", metavar="RUN",
+                   help="continue the run in RUN (default: --out) exactly where it stopped")
     p.add_argument("--steps", type=_at_least(1), help=f"optimizer steps; the cosine schedule ends there "
                                                       f"(default {d.steps})")
     p.add_argument("--batch-size", type=_at_least(1), help=f"subjects per step and process (default {d.batch_size})")
@@ -209,8 +211,20 @@ def _run_training(args, model_cfg, train_cfg, device):
                  progress=not args.no_progress)
 
 
+def _run_directory(args) -> None:
+    """Settle ``args.out`` (the run) and ``args.resume`` (a bool) from ``--out`` and ``--resume [RUN]``."""
+    if args.resume:  # --resume RUN
+        if args.out and Path(args.out).resolve() != Path(args.resume).resolve():
+            raise UserError(f"--resume {args.resume} and --out {args.out} name two runs; give one of them")
+        args.out = args.resume
+    if not args.out:
+        raise UserError("say where the run goes: --out RUN (or --resume RUN to continue one)")
+    args.resume = args.resume is not None
+
+
 def cmd_train(args) -> int:
     from .train import check_start
+    _run_directory(args)
     _check_device(args.device)
     model_cfg, train_cfg = _configs(args)
     check_start(args.data, args.manifest, model_cfg, train_cfg, args.out, args.resume)

@@ -217,27 +217,31 @@ def _cli(*argv, cwd=None):
 def test_resume_keeps_the_schedule_the_data_and_the_manifest(curated, tmp_path):
     data, manifest = curated
     run = tmp_path / "run"
-    base = ("train", "--data", data, "--manifest", manifest, "--out", run, "--render-resolution", "16",
+    base = ("train", "--data", data, "--manifest", manifest, "--render-resolution", "16",
             "--views-per-sample", "3", "--batch-size", "1", "--no-progress")
-    first = _cli(*base, "--steps", "2", "--time-limit", "0.001")  # stops after its first step
+    first = _cli(*base, "--out", run, "--steps", "2", "--time-limit", "0.001")  # stops after its first step
     assert first.returncode == 0, first.stderr
     assert read_checkpoint(run)["step"] == 1
     for extra, message in ((("--steps", "3"), "--steps 3 differs from this run's 2"),
                            (("--config", "full"), "is a 'tiny' run"),
-                           (("--steps", "0"), "must be at least 1")):
-        r = _cli(*base, "--resume", *extra)
+                           (("--steps", "0"), "must be at least 1"),
+                           (("--out", tmp_path / "elsewhere"), "name two runs")):
+        r = _cli(*base, "--resume", run, *extra)
         assert r.returncode == 2 and message in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    r = _cli(*base, "--resume")
+    assert r.returncode == 2 and "say where the run goes" in r.stderr and len(r.stderr.strip().splitlines()) == 1
     other = tmp_path / "other-v1.json"
     m = json.loads(Path(manifest).read_text())
     m["header"]["version"] = "other-v1"
     other.write_text(json.dumps(m))
-    r = _cli(*[a if a != manifest else other for a in base], "--resume")
+    r = _cli(*[a if a != manifest else other for a in base], "--out", run, "--resume")
     assert r.returncode == 2 and "resume it with that manifest" in r.stderr, r.stderr
-    done = _cli(*base, "--resume", "--steps", "2")  # the same value is fine
+    done = _cli(*base, "--resume", run, "--steps", "2")  # the same value is fine; --resume RUN names the run
     assert done.returncode == 0, done.stderr
     assert read_checkpoint(run)["step"] == 2
     assert read_checkpoint(run)["data"]["subjects"] == [k for k, _ in TrainingSamples(
         data, manifest, "train", 3, 16, 0).subjects]
+    assert not (tmp_path / "elsewhere").exists()
 
 
 def test_eval_warns_when_it_scores_training_subjects(curated, tmp_path):
