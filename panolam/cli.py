@@ -223,11 +223,9 @@ def _run_directory(args) -> None:
 
 
 def cmd_train(args) -> int:
-    from .train import check_start
     _run_directory(args)
     _check_device(args.device)
     model_cfg, train_cfg = _configs(args)
-    check_start(args.data, args.manifest, model_cfg, train_cfg, args.out, args.resume)
     if int(os.environ.get("WORLD_SIZE", "1")) > 1:  # launched by torchrun: one process per GPU (or CPU share)
         import torch
         import torch.distributed as dist
@@ -242,6 +240,9 @@ def cmd_train(args) -> int:
             dist.destroy_process_group()
     elif args.nproc > 1:
         import torch.multiprocessing as mp
+        from .train import check_start
+        # Each process checks again as it starts; checking here first makes a mistake one line, not one per process.
+        check_start(args.data, args.manifest, model_cfg, train_cfg, args.out, args.resume)
         try:
             mp.spawn(_train_process, args=(args.nproc, _free_port(), args, model_cfg, train_cfg), nprocs=args.nproc)
         except mp.ProcessExitedException as e:
@@ -287,12 +288,14 @@ def cmd_eval(args) -> int:
     from labeling_tool.manifest import read_manifest
     from .data import accepted_subjects
     from .evaluate import evaluate, write_report
-    from .train import load_model, read_checkpoint
+    from .train import model_from_checkpoint, read_checkpoint
     _check_device(args.device)
     manifest = read_manifest(args.manifest)
-    model = load_model(args.ckpt, args.device, **_model_paths(args))
+    state = read_checkpoint(args.ckpt)
+    trained_on = set(state.get("data", {}).get("subjects", []))
+    model = model_from_checkpoint(state, args.ckpt, args.device, **_model_paths(args))
+    del state  # a copy of the weights and the optimizer's state: not needed while evaluating
     lpips, notes = None, []
-    trained_on = set(read_checkpoint(args.ckpt).get("data", {}).get("subjects", []))
     seen = trained_on & {key for key, _ in accepted_subjects(manifest, args.split, args.data)[:args.limit]}
     if seen:
         warning = (f"WARNING: {len(seen)} of the evaluated subjects were training subjects of this run "

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from typing import Optional
 
 TRIPLANE_MODES = ("rays", "point", "none")
+PATH_FIELDS = ("encoder_weights", "template", "spherehead_checkpoint")  # name files, which may move
 
 
 @dataclass(frozen=True)

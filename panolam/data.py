@@ -123,9 +123,9 @@ def decode_views(key: str, fields: dict, views=None, resolution: int | None = No
     return Views(key, images.clamp(0, 1), alpha.clamp(0, 1), cam2world, K, yaw, radius, planes, inputs)
 
 
-def view_yaws(root, key: str, shard: int) -> np.ndarray:
-    """The yaw (deg) of each stored view of a subject, from its metadata alone."""
-    return np.array([v["yaw_deg"] for v in json.loads(read_fields(root, shard, key)["json"])["views"]])
+def view_yaws(fields: dict) -> np.ndarray:
+    """The yaw (deg) of each stored view of a subject, from its raw fields' metadata alone."""
+    return np.array([v["yaw_deg"] for v in json.loads(fields["json"])["views"]])
 
 
 class TrainingSamples(torch.utils.data.Dataset):
@@ -136,7 +136,8 @@ class TrainingSamples(torch.utils.data.Dataset):
         self.root, self.seed = root, seed
         self.subjects = accepted_subjects(read_manifest(manifest_path), split, root)
         self.views_per_sample, self.resolution, self.input_resolution = views_per_sample, resolution, input_resolution
-        n = len(view_yaws(root, *self.subjects[0]))
+        key, shard = self.subjects[0]
+        n = len(view_yaws(read_fields(root, shard, key)))
         if views_per_sample > n:
             raise UserError(f"{views_per_sample} views per sample, but subjects have {n}")
 
@@ -155,7 +156,7 @@ class TrainingSamples(torch.utils.data.Dataset):
     def __getitem__(self, g: int) -> Views:
         key, shard = self.pick(g)
         fields = read_fields(self.root, shard, key)
-        n = len(json.loads(fields["json"])["views"])
+        n = len(view_yaws(fields))
         if n < self.views_per_sample:
             raise UserError(f"{self.root}: subject {key} has {n} views, fewer than {self.views_per_sample} per sample")
         return decode_views(key, fields, self.view_choice(g, n), self.resolution, self.input_resolution,

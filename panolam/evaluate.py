@@ -20,9 +20,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from datagen.shards import atomic_write
+from datagen.shards import atomic_write, read_fields
 
-from .data import BACKGROUND, accepted_subjects, load_views, view_yaws
+from .data import BACKGROUND, accepted_subjects, decode_views, view_yaws
 from .metrics import psnr, ssim
 from .model import PanoLAM
 from .rasterizer import render_views
@@ -62,12 +62,13 @@ def evaluate(model: PanoLAM, data, manifest: dict, split: str = "test", resoluti
     subjects = accepted_subjects(manifest, split, data)[:limit]
     rows, skipped, rec_times, render_times, front_targets = [], [], [], [], []
     for key, shard in subjects:
-        picked = nearest_views(view_yaws(data, key, shard))
+        fields = read_fields(data, shard, key)
+        picked = nearest_views(view_yaws(fields))
         if picked is None:
             skipped.append(key)
             continue
         idx = list(picked.values())
-        meta_views = load_views(data, key, shard, idx, resolution, input_resolution=model.cfg.image_size)
+        meta_views = decode_views(key, fields, idx, resolution, model.cfg.image_size, str(data))
         images = meta_views.images.to(device)
         x = meta_views.inputs[None].to(device)
         t0 = time.perf_counter()

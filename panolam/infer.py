@@ -135,7 +135,7 @@ def run(model: PanoLAM, image: np.ndarray, out_ply: Path | None, turntable: Path
     t0 = time.perf_counter()
     frames_full = render_set(full, views, resolution)
     render_ms = (time.perf_counter() - t0) * 1000 / len(views)
-    frames_kept = render_set(kept, views, resolution)
+    frames_kept = frames_full if len(kept) == len(full) else render_set(kept, views, resolution)
     loss_db = float(psnr(frames_kept, frames_full).mean())
     outputs = {}  # everything is encoded before anything is written
     if out_ply is not None:

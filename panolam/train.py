@@ -36,7 +36,7 @@ import torch.nn.functional as F
 from datagen.errors import UserError
 from labeling_tool.manifest import read_manifest
 
-from .config import ModelConfig
+from .config import PATH_FIELDS, ModelConfig
 from .data import BACKGROUND, TrainingSamples, Views, collate, resized
 from .metrics import dssim_loss, psnr
 from .model import PanoLAM, Reconstruction
@@ -44,7 +44,6 @@ from .rasterizer import render_views
 
 CHECKPOINT = "checkpoint.pt"
 HISTORY_KEPT = 10_000  # most recent per-step log entries carried in a checkpoint (TensorBoard has them all)
-PATH_FIELDS = ("encoder_weights", "template", "spherehead_checkpoint")  # may move between machines
 
 
 class TrainingError(UserError, RuntimeError):
@@ -212,7 +211,11 @@ def _same_config(a: dict, b: dict) -> bool:
 
 def load_model(path, device="cpu", **overrides) -> PanoLAM:
     """The trained model of a checkpoint, in eval mode; ``overrides`` replace config fields (file paths, M_D)."""
-    state = read_checkpoint(path)
+    return model_from_checkpoint(read_checkpoint(path), path, device, **overrides)
+
+
+def model_from_checkpoint(state: dict, path, device="cpu", **overrides) -> PanoLAM:
+    """:func:`load_model` on a checkpoint already read (:func:`read_checkpoint`) from ``path``."""
     try:
         cfg = ModelConfig.from_dict(state["model_config"]).replace(**overrides)
     except (TypeError, ValueError) as e:
