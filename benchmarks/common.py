@@ -12,6 +12,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
+from contextlib import contextmanager
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -77,6 +78,37 @@ def peak_rss_mb() -> float:
 
 def median(values) -> float:
     return float(statistics.median(values))
+
+
+@contextmanager
+def stage_clock(stages: dict):
+    """Accumulate wall seconds spent in callables while the block runs.
+
+    ``stages``: {stage name: (owner, attribute name)}; each ``owner.attribute`` (a module's function
+    or an object's method) is wrapped for the duration of the block. Yields {stage: seconds}.
+    """
+    totals = dict.fromkeys(stages, 0.0)
+    originals = {name: getattr(owner, attr) for name, (owner, attr) in stages.items()}
+
+    def timed(name, fn):
+        def wrapper(*args, **kwargs):
+            start = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                totals[name] += time.perf_counter() - start
+        return wrapper
+
+    for name, (owner, attr) in stages.items():
+        setattr(owner, attr, timed(name, originals[name]))
+    try:
+        yield totals
+    finally:
+        for name, (owner, attr) in stages.items():
+            if isinstance(owner, type) or not hasattr(type(owner), attr):
+                setattr(owner, attr, originals[name])
+            else:
+                delattr(owner, attr)  # an instance's wrapped method: the class's shows again
 
 
 def run_child(script: Path, config: dict, env: dict | None = None) -> dict:

@@ -13,13 +13,19 @@ The checkpoints are the tiny random-init generators of the shared fixtures
 repository): neural rendering resolution 32, 12+12 samples per ray, super-resolution to 128 px,
 backbone planes 256 px (EG3D) / 64 px (PanoHead, SphereHead). A model whose file is missing is
 skipped with a note. Sections: (1) throughput of 32-view 128 px subjects, split into per-subject
-work (mapping + backbone + background) and per-view rendering; (2) amortization: the backbone
-computed once for 32 views against once per view, measured side by side with the arms rotated
-over repeats; (3) samples per ray against error, against a 4x-samples reference. Times are
+work (mapping + backbone + background) and per-view rendering; (2) amortization and arrangement:
+the backbone computed once for 32 views against once per view, and the default (chunks from the
+memory budget) against one call for all views in the former arrangement (16384-ray chunks, all
+views super-resolved at once) and one view per call, side by side with the arms rotated over
+repeats; (3) samples per ray against error, against a 4x-samples reference; (4) the memory budget
+against time; (5) clipping the rays to the generator's box: time and PSNR against the unclipped
+render; (6) precision: the originals' fp16 super-resolution against fp32 on the production-SR
+fixtures (``fixtures/gan-sr``, 512 px, clamps active), fp16 forced on the CPU. Times are
 ``time.perf_counter`` wall seconds after a warm-up; tables give medians.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import sys
@@ -36,6 +42,7 @@ from benchmarks.common import (REPO, bullets, fmt, load_note, measurement_header
 from datagen.cameras import sample_views  # noqa: E402
 from datagen.generators import GANS, make_generator  # noqa: E402
 from datagen.generators.base import STREAM_CAMERAS, subject_rng  # noqa: E402
+from datagen.generators.gan import ChunkPlan  # noqa: E402
 
 NAME = "gan_speed"
 SHARED = Path(os.environ.get("PANOLAM_SHARED", REPO.parent / "shared"))
@@ -46,13 +53,18 @@ REFERENCE_SAMPLES = (48, 48)    # 4x the fixtures' default (12, 12)
 PSNR_TARGET_DB = 40.0           # image PSNR at which the sampling error counts as negligible
 WARMUP_INDEX = 10_000           # a subject outside every measured set
 SWEEP_FIRST_INDEX = 100         # sweep subjects, apart from the throughput subjects
-ARMS = ("batched", "per_view", "regenerate")
-# Paired ratios: the whole saving, the part due to reusing the backbone, the part due to batching views.
+ARMS = ("batched", "one_batch", "per_view", "regenerate")
+# Paired ratios: the whole saving, the part due to reusing the backbone, the part due to batching views,
+# and the former arrangement against the default.
 RATIOS = {"regenerate_over_batched": ("regenerate", "batched"), "reuse": ("regenerate", "per_view"),
-          "batching": ("per_view", "batched")}
-ARM_TITLES = {"batched": "backbone once, all views in one render call",
+          "batching": ("per_view", "batched"), "former": ("one_batch", "batched")}
+ARM_TITLES = {"batched": "backbone once, all views in one render call, chunks and batches from the memory budget "
+                         "(the default)",
+              "one_batch": "the former default: one render call, 16384-ray chunks, all views super-resolved at once",
               "per_view": "backbone once, one view per render call",
               "regenerate": "backbone again for every view, one view per call"}
+FORMER_CHUNK_RAYS = 1 << 14
+BUDGETS_MB = (8, 16, 32, 64, 128, 256, 1024)
 
 
 @dataclass(frozen=True)
@@ -136,6 +148,21 @@ def run_batched(g, index: int, views) -> tuple[np.ndarray, dict]:
     return out.rgb, {"subject_s": subject_s, "render_s": render_s, "total_s": subject_s + render_s}
 
 
+@contextmanager
+def plan(g, chunk_plan: ChunkPlan):
+    """Render with ``chunk_plan`` instead of the generator's own while the block runs."""
+    saved, g.plan = g.plan, chunk_plan
+    try:
+        yield
+    finally:
+        g.plan = saved
+
+
+def run_one_batch(g, index: int, views) -> tuple[np.ndarray, dict]:
+    with plan(g, ChunkPlan(rays=FORMER_CHUNK_RAYS, images=len(views))):
+        return run_batched(g, index, views)
+
+
 def run_per_view(g, index: int, views) -> tuple[np.ndarray, dict]:
     subject, subject_s = timed(g.sample_subject, SEED, index)
     rgbs, render_s = [], 0.0
@@ -157,7 +184,8 @@ def run_regenerate(g, index: int, views) -> tuple[np.ndarray, dict]:
     return np.concatenate(rgbs), {"subject_s": subject_s, "render_s": render_s, "total_s": subject_s + render_s}
 
 
-RUNNERS = {"batched": run_batched, "per_view": run_per_view, "regenerate": run_regenerate}
+RUNNERS = {"batched": run_batched, "one_batch": run_one_batch, "per_view": run_per_view,
+           "regenerate": run_regenerate}
 
 
 def throughput_model(g, plan: Plan) -> dict:
@@ -236,10 +264,107 @@ def sweep(generators: dict, plan: Plan) -> dict:
 
 
 # ------------------------------------------------------------------------------------------------
+# 4. The memory budget: chunk sizes against time
+
+def budget_model(g, plan_: Plan) -> dict:
+    from datagen.generators.gan import chunk_plan
+    views = views_of(0, plan_.views)
+    subject = g.sample_subject(SEED, 0)
+    plans = {mb: chunk_plan(g.G, mb * 2 ** 20, False) for mb in BUDGETS_MB}
+    seconds = {mb: [] for mb in BUDGETS_MB}
+    reference = None
+    same = True
+    for repeat in range(plan_.subjects):
+        order = BUDGETS_MB[repeat % len(BUDGETS_MB):] + BUDGETS_MB[:repeat % len(BUDGETS_MB)]
+        for mb in order:
+            with plan(g, plans[mb]):
+                out, t = timed(g.render, subject, views, RESOLUTION)
+            seconds[mb].append(t)
+            reference = out.rgb if reference is None else reference
+            same = same and np.array_equal(out.rgb, reference)
+    return {"rows": [{"budget_mb": mb, "rays": plans[mb].rays, "images": plans[mb].images,
+                      "render_s": median(seconds[mb])} for mb in BUDGETS_MB],
+            "default_mb": g.budget_bytes() / 2 ** 20, "identical_images": bool(same)}
+
+
+def budget(generators: dict, plan_: Plan) -> dict:
+    return {model: budget_model(g, plan_) for model, g in generators.items()}
+
+
+# ------------------------------------------------------------------------------------------------
+# 5. Clipping each ray to the generator's box
+
+def clipping_model(g, plan_: Plan) -> dict:
+    views = views_of(1, plan_.views)
+    subject = g.sample_subject(SEED, 1)
+    box = g.G.content_box()
+    seconds = {False: [], True: []}
+    outs = {}
+    for repeat in range(plan_.subjects):
+        for clip in ((False, True) if repeat % 2 == 0 else (True, False)):
+            g.config = dataclasses.replace(g.config, clip_rays=clip)
+            outs[clip], t = timed(g.render, subject, views, RESOLUTION)
+            seconds[clip].append(t)
+    g.config = dataclasses.replace(g.config, clip_rays=False)
+    # how many rays miss the box at all, and how much of the marched range lies outside it
+    from datagen.cameras import rays as camera_rays
+    from datagen.render import box_interval
+    rk = g.G.rendering_kwargs
+    o, d = camera_rays(views.cam2world, views.K, g.checkpoint.neural_rendering_resolution)
+    shift = np.repeat(views.radius - rk["avg_camera_radius"], o.shape[1])
+    start = rk["ray_start"] + shift
+    end = rk["ray_end"] + shift
+    near, far = (t.numpy() for t in box_interval(o.reshape(-1, 3), d.reshape(-1, 3), box))
+    kept = np.clip(np.minimum(end, far) - np.maximum(start, near), 0, None) / (end - start)
+    mse = float(np.mean((outs[True].rgb.astype(np.float64) - outs[False].rgb) ** 2))
+    return {"box": list(box), "unclipped_s": median(seconds[False]), "clipped_s": median(seconds[True]),
+            "missing_rays": float(np.mean(kept == 0)), "mean_range_kept": float(kept.mean()),
+            "psnr_rgb_db": psnr(mse),
+            "psnr_alpha_db": psnr(float(np.mean((outs[True].alpha.astype(np.float64) - outs[False].alpha) ** 2)))}
+
+
+def clipping(generators: dict, plan_: Plan) -> dict:
+    return {model: clipping_model(g, plan_) for model, g in generators.items()}
+
+
+# ------------------------------------------------------------------------------------------------
+# 6. Precision: fp16 super-resolution against fp32 on the production-SR fixtures
+
+def sr_checkpoint_path(model: str) -> Path:
+    return SHARED / "fixtures" / "gan-sr" / model / f"{model}-sr.pkl"
+
+
+def precision(generators: dict, plan_: Plan) -> dict:
+    out = {}
+    for model in generators:
+        path = sr_checkpoint_path(model)
+        if not path.exists():
+            out[model] = {"skipped": f"{path} not found"}
+            continue
+        g = make_generator(model, str(path), {"deterministic": True})
+        views = views_of(2, plan_.sweep_views)
+        subject = g.sample_subject(SEED, 2)
+        images = {}
+        for p in ("fp32", "fp16"):
+            g.G.precision = p
+            images[p], images[p + "_s"] = timed(g.render, subject, views, g.G.img_resolution)
+        diff = np.abs(images["fp16"].rgb.astype(np.float64) - images["fp32"].rgb)
+        out[model] = {"views": len(views), "resolution": g.G.img_resolution, "max_abs": float(diff.max()),
+                      "mean_abs": float(diff.mean()), "psnr_db": psnr(float(np.mean(diff ** 2))),
+                      "levels_changed": float(np.mean(np.round(images["fp16"].rgb * 255) !=
+                                                      np.round(images["fp32"].rgb * 255))),
+                      "fp32_s": images["fp32_s"], "fp16_cpu_s": images["fp16_s"]}
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
 # Running
 
-SECTIONS = (("throughput", "1+2. throughput and amortization", throughput),
-            ("samples", "3. samples per ray", sweep))
+SECTIONS = (("throughput", "1+2. throughput, amortization and arrangement", throughput),
+            ("samples", "3. samples per ray", sweep),
+            ("budget", "4. memory budget", budget),
+            ("clipping", "5. clipping rays to the box", clipping),
+            ("precision", "6. fp16 against fp32 (production super-resolution)", precision))
 
 
 def fixture_info(generators: dict) -> dict:
@@ -301,20 +426,58 @@ def throughput_conclusions(results: dict) -> list[str]:
 
 def amortization_conclusions(results: dict) -> list[str]:
     lines = []
+    views = results["plan"]["views"]
     for model, d in results["throughput"].items():
         med, ratio = d["median"], {k: v["median"] for k, v in d["ratios"].items()}
         total = d["ratios"]["regenerate_over_batched"]
         lines.append(f"{model}: regenerating the backbone for every view takes x{total['median']:.2f} the time of "
-                     f"computing it once and rendering the {results['plan']['views']} views in one call "
+                     f"computing it once and rendering the {views} views in one call "
                      f"(x{total['min']:.2f} to x{total['max']:.2f} over subjects; medians "
                      f"{med['regenerate']['total_s']:.2f} s vs {med['batched']['total_s']:.2f} s). Reusing the "
-                     f"backbone alone is worth x{ratio['reuse']:.2f} (both one view per call); "
-                     + (f"batching the views in one call saves x{ratio['batching']:.2f}." if ratio["batching"] >= 1
-                        else f"batching the views in one call is SLOWER than one view per call: one-view calls take "
-                             f"x{ratio['batching']:.2f} its time."))
+                     f"backbone alone is worth x{ratio['reuse']:.2f} (both one view per call); one view per call "
+                     + (f"takes x{ratio['batching']:.2f} the default's time" if ratio["batching"] >= 1 else
+                        f"is FASTER than the default (x{ratio['batching']:.2f} its time)")
+                     + f"; the former one-call arrangement (16384-ray chunks, all {views} views super-resolved "
+                     f"at once) takes x{ratio['former']:.2f}.")
     diff = max(d["max_abs_rgb_diff_between_arms"] for d in results["throughput"].values())
     same = "the same images" if diff < 1e-4 else "DIFFERENT images"
-    lines.append(f"The three ways give {same} (max |rgb difference| {diff:.1e} over all subjects and models).")
+    lines.append(f"The arms give {same} (max |rgb difference| {diff:.1e} over all subjects and models: the "
+                 "convolution kernels differ by batch size in the last bits).")
+    return lines
+
+
+def budget_conclusions(results: dict) -> list[str]:
+    lines = []
+    for model, d in results["budget"].items():
+        best = min(d["rows"], key=lambda r: r["render_s"])
+        default = next(r for r in d["rows"] if r["budget_mb"] == d["default_mb"])
+        lines.append(f"{model}: the fastest budget is {best['budget_mb']} MB ({best['rays']} rays, {best['images']} "
+                     f"views per batch, {best['render_s']:.2f} s); the default {default['budget_mb']} MB takes "
+                     f"x{default['render_s'] / best['render_s']:.2f} that; the images are "
+                     + ("bit-identical across budgets." if d["identical_images"] else "NOT bit-identical across budgets."))
+    return lines
+
+
+def clipping_conclusions(results: dict) -> list[str]:
+    lines = []
+    for model, d in results["clipping"].items():
+        lines.append(f"{model}: clipping keeps {100 * d['mean_range_kept']:.0f} % of the marched range on average and "
+                     f"{100 * d['missing_rays']:.1f} % of the rays miss the box, so with the same samples per ray "
+                     f"it saves x{d['unclipped_s'] / d['clipped_s']:.2f} in time; against the unclipped render the "
+                     f"image is at {fmt(d['psnr_rgb_db'], 1)} dB, the mask at {fmt(d['psnr_alpha_db'], 1)} dB "
+                     f"(the samples move closer together inside the box).")
+    return lines
+
+
+def precision_conclusions(results: dict) -> list[str]:
+    lines = []
+    for model, d in results["precision"].items():
+        if "skipped" in d:
+            lines.append(f"{model}: precision not measured ({d['skipped']}).")
+            continue
+        lines.append(f"{model}: the fp16 super-resolution (the originals' CUDA arithmetic, forced on the CPU) against "
+                     f"fp32 at {d['resolution']} px: {fmt(d['psnr_db'], 1)} dB, max |difference| "
+                     f"{d['max_abs']:.1e}, {100 * d['levels_changed']:.1f} % of the 8-bit values change.")
     return lines
 
 
@@ -351,8 +514,7 @@ def scope_section(results: dict) -> list[str]:
     return (["**These are tiny random-init configurations**, the shared test fixtures, not the released models. "
              "The released checkpoints render many more rays per view (e.g. 128x128 instead of 32x32) with more "
              "samples per ray and super-resolve to 512 px, so their per-view cost is far higher and the per-subject "
-             "share smaller still; full-size timings need a GPU and the official checkpoints, neither available "
-             "here.", ""] +
+             "share smaller still: `benchmarks/reports/gan_fullsize.md` times the released sizes.", ""] +
             table(["model", "neural render px", "samples/ray", "output px", "plane px", "sha256"], rows) +
             [""] + [f"Note: {n}" for n in results["notes"]])
 
@@ -397,16 +559,55 @@ def amortization_section(results: dict) -> list[str]:
         total = ratios["regenerate_over_batched"]
         rows.append([model, *(fmt(med[a]["total_s"]) for a in ARMS), fmt(med["regenerate"]["subject_s"]),
                      f"x{total['median']:.2f} (x{total['min']:.2f} - x{total['max']:.2f})",
-                     f"x{ratios['reuse']['median']:.2f}", f"x{ratios['batching']['median']:.2f}"])
+                     f"x{ratios['reuse']['median']:.2f}", f"x{ratios['batching']['median']:.2f}",
+                     f"x{ratios['former']['median']:.2f}"])
     n = results["plan"]["subjects"]
     arms = "; ".join(f"**{a}**: {ARM_TITLES[a]}" for a in ARMS)
-    return ([f"Seconds for the {results['plan']['views']} views of one subject. {arms}. The three arms run back to "
+    return ([f"Seconds for the {results['plan']['views']} views of one subject. {arms}. The arms run back to "
              f"back on the same subject, their order rotating from subject to subject. Times are medians over {n} "
              "subjects; ratios are medians (min - max) of the per-subject ratios, each taken between arms that ran "
              "seconds apart, so they are robust to load that drifts between subjects.", ""] +
-            table(["model", "batched s", "per_view s", "regenerate s", "of which backbone s",
+            table(["model", *(f"{a} s" for a in ARMS), "of which backbone s",
                    "regenerate / batched (min - max)", "regenerate / per_view (reuse)",
-                   "per_view / batched (batching)"], rows))
+                   "per_view / batched", "one_batch / batched"], rows))
+
+
+def budget_section(results: dict) -> list[str]:
+    rows = []
+    for model, d in results["budget"].items():
+        for r in d["rows"]:
+            rows.append([model, r["budget_mb"] if r["budget_mb"] != d["default_mb"] else f"{r['budget_mb']} (default)",
+                         r["rays"], r["images"], fmt(r["render_s"])])
+    return ([f"One subject's {results['plan']['views']} views at {RESOLUTION} px per budget, the budgets in rotating "
+             f"order, median over {results['plan']['subjects']} repeats. The budget sets the rays per march chunk "
+             "(whole multiples of 1024) and the views per super-resolution batch (at least 2).", ""] +
+            table(["model", "budget MB", "rays per chunk", "views per SR batch", "render s"], rows))
+
+
+def clipping_section(results: dict) -> list[str]:
+    rows = [[m, ", ".join(f"{v:.2f}" for v in d["box"]), f"{100 * d['missing_rays']:.1f} %",
+             f"{100 * d['mean_range_kept']:.0f} %", fmt(d["unclipped_s"]), fmt(d["clipped_s"]),
+             fmt(d["psnr_rgb_db"], 1), fmt(d["psnr_alpha_db"], 1)] for m, d in results["clipping"].items()]
+    return ([f"`--clip-rays` against the originals' full ray range, {results['plan']['views']} views at "
+             f"{RESOLUTION} px, deterministic sampling, same samples per ray. Box: half extents (x, y, z) in world "
+             "units (PanoHead/SphereHead: their density crop in x and z).", ""] +
+            table(["model", "box", "rays that miss", "range kept", "unclipped s", "clipped s", "image PSNR dB",
+                   "mask PSNR dB"], rows) +
+            ["", "Caveat: random-weight fixtures, whose density fills the whole box; a trained head leaves most of "
+             "the box empty, so the PSNR here says how much the re-spaced samples change a dense volume."])
+
+
+def precision_section(results: dict) -> list[str]:
+    rows = [[m, d["views"], d["resolution"], fmt(d["psnr_db"], 1), f"{d['max_abs']:.1e}", f"{d['mean_abs']:.1e}",
+             f"{100 * d['levels_changed']:.1f} %", fmt(d["fp32_s"]), fmt(d["fp16_cpu_s"])]
+            for m, d in results["precision"].items() if "skipped" not in d]
+    return (["The production-SR fixtures (8XDC, 128 -> 512 px, conv_clamp 256 active in some channels) rendered "
+             "with the super-resolution in fp16 (weights and styles pre-normalized, bias and activation in fp32, "
+             "clamped, as the originals on CUDA) against fp32, same planes and cameras. On CUDA `--precision auto` "
+             "(the default) runs the fp16 path; `--precision fp32` opts out. The CPU has no fast fp16 "
+             "convolutions, so the fp16 time here says nothing about a GPU.", ""] +
+            table(["model", "views", "px", "PSNR dB", "max abs", "mean abs", "8-bit values changed", "fp32 s",
+                   "fp16 s (CPU)"], rows))
 
 
 def samples_section(results: dict) -> list[str]:
@@ -434,14 +635,19 @@ def samples_section(results: dict) -> list[str]:
 
 
 def markdown(results: dict, plot: str | None) -> str:
-    summary = throughput_conclusions(results) + amortization_conclusions(results) + sample_conclusions(results)
+    summary = (throughput_conclusions(results) + amortization_conclusions(results) + sample_conclusions(results) +
+               budget_conclusions(results) + clipping_conclusions(results) + precision_conclusions(results))
     parts = [["# 3D-GAN generators (EG3D, PanoHead, SphereHead): speed on the tiny fixtures", "",
               f"Generated by `benchmarks/gan_speed.py` from `{results_name(results)}.json`; do not edit.", ""],
              scope_section(results), [""], machine_section(results), ["", "## Conclusions", ""], bullets(summary),
              ["", f"## 1. Throughput: {results['plan']['views']}-view {RESOLUTION} px subjects", ""],
              throughput_section(results),
-             ["", "## 2. Amortization: backbone once per subject vs once per view", ""], amortization_section(results),
-             ["", "## 3. Samples per ray: render time against error", ""], samples_section(results)]
+             ["", "## 2. Amortization and arrangement: backbone once per subject, views per call", ""],
+             amortization_section(results),
+             ["", "## 3. Samples per ray: render time against error", ""], samples_section(results),
+             ["", "## 4. Memory budget: chunk sizes against time", ""], budget_section(results),
+             ["", "## 5. Clipping rays to the generator's box", ""], clipping_section(results),
+             ["", "## 6. Precision: fp16 super-resolution against fp32", ""], precision_section(results)]
     if plot:
         parts.append(["", "## Plot", "", f"![{plot}]({plot})"])
     else:

@@ -124,8 +124,11 @@ def conditioning_vector(cam2world, K_norm) -> np.ndarray:
 
 
 def ray_range(radius):
-    """EG3D's ray range (near, far) as distances along the ray, moved with the camera radius."""
-    r = np.asarray(radius, dtype=np.float64)
+    """EG3D's ray range (near, far) as distances along the ray, moved with the camera radius.
+
+    ``radius``: floats or arrays (float64 numpy out), or a tensor (same dtype and device out).
+    """
+    r = radius if torch.is_tensor(radius) else np.asarray(radius, dtype=np.float64)
     return r - RAY_START_BEFORE_ORIGIN, r + RAY_END_BEYOND_ORIGIN
 
 
@@ -135,16 +138,16 @@ def rays(cam2world: torch.Tensor, K_norm: torch.Tensor, resolution: int):
     Pixel (row, col) has normalized coordinates u = col/R + 0.5/R, v = row/R + 0.5/R. The
     arithmetic follows EG3D's ray sampler operation by operation (lift to camera space, transform
     the point with the full cam2world, subtract the centre, normalize), so GAN renders reproduce
-    the originals to float32 rounding.
+    the originals to float32 rounding. Computed on the device of ``cam2world`` (arrays: the CPU).
     """
     cam2world = torch.as_tensor(cam2world, dtype=torch.float32)
-    K_norm = torch.as_tensor(K_norm, dtype=torch.float32)
+    K_norm = torch.as_tensor(K_norm, dtype=torch.float32, device=cam2world.device)
     V, M = cam2world.shape[0], resolution ** 2
-    idx = torch.arange(resolution, dtype=torch.float32)
+    idx = torch.arange(resolution, dtype=torch.float32, device=cam2world.device)
     uv = torch.stack(torch.meshgrid(idx, idx, indexing="ij")) * (1.0 / resolution) + (0.5 / resolution)
     uv = uv.flip(0).reshape(2, -1).transpose(1, 0).unsqueeze(0).repeat(V, 1, 1)
     x_cam, y_cam = uv[:, :, 0], uv[:, :, 1]
-    z_cam = torch.ones((V, M))
+    z_cam = torch.ones((V, M), device=cam2world.device)
     fx, fy = K_norm[:, 0, 0, None], K_norm[:, 1, 1, None]
     cx, cy, sk = K_norm[:, 0, 2, None], K_norm[:, 1, 2, None], K_norm[:, 0, 1, None]
     x_lift = (x_cam - cx + cy * sk / fy - sk * y_cam / fy) / fx * z_cam

@@ -51,7 +51,16 @@ def build_parser() -> OneLineParser:
     s.add_argument("--truncation-cutoff", type=int, default=None, help="GANs: truncate the first N ws (default 14)")
     s.add_argument("--save-planes", type=int, default=0, metavar="RES",
                    help="GANs: also store the plane features in fp16 at RES x RES (for distillation)")
-    s.add_argument("--device", default=None, help="GANs: cpu, cuda or auto (default: cuda when available)")
+    s.add_argument("--device", default=None, help="GANs: cpu, cuda, cuda:N or auto (default: cuda when available)")
+    s.add_argument("--precision", default=None, choices=("auto", "fp32", "fp16"),
+                   help="GANs: 'auto' (default) runs the originals' fp16 blocks (the super-resolution of the released "
+                        "checkpoints) in fp16 on CUDA and everything in fp32 on CPU; 'fp32' never uses fp16")
+    s.add_argument("--clip-rays", action="store_true",
+                   help="GANs: march each ray only where it crosses the generator's box and skip rays that miss it "
+                        "(the originals march the whole ray range)")
+    s.add_argument("--memory-budget-mb", type=float, default=None, metavar="MB",
+                   help="GANs: working memory per chunk of rays / batch of super-resolved views "
+                        "(default 64 on CPU, a quarter of the GPU's memory on CUDA)")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
 
     v = sub.add_parser("verify", help="check checksums, decoding, counts and metadata of a dataset")
@@ -95,8 +104,15 @@ def _sample(args) -> int:
         if not 8 <= args.save_planes <= 1024:
             raise UserError("--save-planes must be between 8 and 1024")
         options["save_planes"] = args.save_planes
-    if args.device is not None:
-        options["device"] = args.device
+    gan_only = {"device": args.device, "precision": args.precision, "clip_rays": args.clip_rays or None,
+                "memory_budget_mb": args.memory_budget_mb}
+    for key, value in gan_only.items():
+        if value is not None:
+            if not gan:
+                raise UserError(f"--{key.replace('_', '-')}: only for the GAN generators")
+            options[key] = value
+    if args.memory_budget_mb is not None and not args.memory_budget_mb > 0:
+        raise UserError("--memory-budget-mb must be above 0")
     spec = JobSpec(out=args.out, gan=args.gan, checkpoint=args.checkpoint, generator_options=options,
                    protocol=args.protocol, subjects=args.subjects, resolution=args.resolution, views=args.views,
                    seed=args.seed, shard_size=args.shard_size, software=software_info())

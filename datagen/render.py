@@ -8,7 +8,9 @@ compositing, depth clamped to the sampled range.
 Shapes: B batch, R rays, S samples per ray, C feature channels. Depths are distances along unit
 ray directions (world units). ``deterministic=True`` turns off stratified jitter and uses fixed
 importance quantiles, so the output does not depend on any random state; otherwise randomness
-comes only from the given ``torch.Generator`` (seeded per subject for reproducible datasets).
+comes only from the given ``torch.Generator`` (seeded per subject for reproducible datasets). The
+chunked renderer draws each ray's random numbers in fixed blocks of ``NOISE_BLOCK_RAYS`` rays on
+the CPU, so an image does not depend on the chunk size (a memory budget) or on the device.
 
 A field is a callable ``field(points (B,R*S,3), dirs (B,R*S,3)) -> (features (B,R*S,C), raw_density (B,R*S,1))``.
 """
@@ -21,6 +23,7 @@ import torch
 import torch.nn.functional as F
 
 Field = Callable[[torch.Tensor, torch.Tensor], tuple]
+NOISE_BLOCK_RAYS = 1 << 14
 
 
 @dataclass(frozen=True)
@@ -39,10 +42,11 @@ class RenderSettings:
 
 
 def sample_stratified(ray_start, ray_end, n: int, shape, deterministic: bool,
-                      generator: Optional[torch.Generator] = None) -> torch.Tensor:
+                      generator: Optional[torch.Generator] = None, u: Optional[torch.Tensor] = None) -> torch.Tensor:
     """Depths (B, R, n, 1) from ray_start to ray_end; jittered by up to one bin unless deterministic.
 
-    ray_start/ray_end: floats, or tensors broadcastable to (B, R, 1).
+    ray_start/ray_end: floats, or tensors broadcastable to (B, R, 1). ``u``: the jitter's uniform
+    numbers (B*R, n), drawn from ``generator`` when not given.
     """
     B, R = shape
     start = torch.as_tensor(ray_start, dtype=torch.float32)
@@ -53,20 +57,26 @@ def sample_stratified(ray_start, ray_end, n: int, shape, deterministic: bool,
     depths = (start + (end - start) * t).expand(B, R, n, 1).contiguous()
     if not deterministic and n > 1:
         delta = (end - start) / (n - 1)
-        depths = depths + torch.rand(depths.shape, generator=generator).to(start.device) * delta
+        if u is None:
+            u = torch.rand(depths.shape, generator=generator)
+        depths = depths + u.to(start.device).reshape(depths.shape) * delta
     return depths
 
 
 def sample_pdf(bins: torch.Tensor, weights: torch.Tensor, n: int, deterministic: bool,
-               generator: Optional[torch.Generator] = None, eps: float = 1e-5) -> torch.Tensor:
-    """Inverse-CDF samples (N, n) from piecewise-constant weights (N, M-1) over bin edges (N, M)."""
+               generator: Optional[torch.Generator] = None, eps: float = 1e-5,
+               u: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Inverse-CDF samples (N, n) from piecewise-constant weights (N, M-1) over bin edges (N, M).
+
+    ``u``: the uniform numbers (N, n) when not deterministic (drawn from ``generator`` if not given).
+    """
     N, M = weights.shape
     weights = weights + eps
     pdf = weights / weights.sum(-1, keepdim=True)
     cdf = torch.cat([torch.zeros_like(pdf[:, :1]), torch.cumsum(pdf, -1)], -1)
     if deterministic:
-        u = torch.linspace(0.0, 1.0, n).expand(N, n).contiguous()
-    else:
+        u = torch.linspace(0.0, 1.0, n, device=cdf.device).expand(N, n).contiguous()
+    elif u is None:
         u = torch.rand((N, n), generator=generator)
     u = u.to(cdf.device)
     idx = torch.searchsorted(cdf, u, right=True)
@@ -81,7 +91,7 @@ def sample_pdf(bins: torch.Tensor, weights: torch.Tensor, n: int, deterministic:
 
 
 def sample_importance(depths: torch.Tensor, weights: torch.Tensor, n: int, deterministic: bool,
-                      generator: Optional[torch.Generator] = None) -> torch.Tensor:
+                      generator: Optional[torch.Generator] = None, u: Optional[torch.Tensor] = None) -> torch.Tensor:
     """Extra depths (B, R, n, 1) drawn where the coarse compositing weights (B, R, S-1, 1) are large."""
     with torch.no_grad():
         B, R, S, _ = depths.shape
@@ -90,7 +100,7 @@ def sample_importance(depths: torch.Tensor, weights: torch.Tensor, n: int, deter
         w = F.max_pool1d(w, 2, 1, padding=1)
         w = F.avg_pool1d(w, 2, 1).reshape(B * R, -1) + 0.01
         mids = 0.5 * (z[:, :-1] + z[:, 1:])
-        fine = sample_pdf(mids, w[:, 1:-1], n, deterministic, generator)
+        fine = sample_pdf(mids, w[:, 1:-1], n, deterministic, generator, u=u)
     return fine.reshape(B, R, n, 1)
 
 
@@ -145,39 +155,104 @@ def _query(field: Field, origins, dirs, depths):
 
 
 def render_rays(field: Field, origins: torch.Tensor, dirs: torch.Tensor, ray_start, ray_end,
-                settings: RenderSettings, generator: Optional[torch.Generator] = None):
+                settings: RenderSettings, generator: Optional[torch.Generator] = None, noise=None):
     """Render rays (B, R, 3) through ``field``: coarse pass, importance pass, final composite.
 
+    ``noise``: (stratified (B*R, S), importance (B*R, S_imp)) uniform numbers, e.g. a slice of
+    :func:`draw_ray_noise`; drawn from ``generator`` when not given.
     Returns (features (B,R,C), depth (B,R,1), alpha (B,R,1)); alpha is the sum of the weights.
     """
     B, R, _ = origins.shape
+    u_strat, u_imp = noise if noise is not None else (None, None)
     depths = sample_stratified(ray_start, ray_end, settings.depth_resolution, (B, R), settings.deterministic,
-                               generator).to(origins.device)
+                               generator, u_strat).to(origins.device)
     feats, dens = _query(field, origins, dirs, depths)
     if settings.depth_resolution_importance > 0:
         _, _, weights = march(feats, dens, depths, settings.density_activation)
-        fine = sample_importance(depths, weights, settings.depth_resolution_importance, settings.deterministic, generator)
+        fine = sample_importance(depths, weights, settings.depth_resolution_importance, settings.deterministic,
+                                 generator, u_imp)
         feats_f, dens_f = _query(field, origins, dirs, fine)
         depths, feats, dens = merge_samples(depths, feats, dens, fine, feats_f, dens_f)
     out, depth, weights = march(feats, dens, depths, settings.density_activation)
     return out, depth, weights.sum(2)
 
 
+def draw_ray_noise(n_rays: int, settings: RenderSettings, generator: Optional[torch.Generator]):
+    """Every ray's uniform numbers, (stratified (N, S), importance (N, S_imp) or None), or None if
+    deterministic.
+
+    Drawn on the CPU in blocks of ``NOISE_BLOCK_RAYS`` rays (a block's stratified numbers, then its
+    importance numbers), so they depend neither on how the rays are chunked nor on the device.
+    """
+    if settings.deterministic:
+        return None
+    S, S_imp = settings.depth_resolution, settings.depth_resolution_importance
+    strat, imp = [], []
+    for i in range(0, n_rays, NOISE_BLOCK_RAYS):
+        m = min(NOISE_BLOCK_RAYS, n_rays - i)
+        strat.append(torch.rand((m, S), generator=generator) if S > 1 else torch.zeros(m, S))
+        if S_imp > 0:
+            imp.append(torch.rand((m, S_imp), generator=generator))
+    return torch.cat(strat), (torch.cat(imp) if imp else None)
+
+
+def box_interval(origins: torch.Tensor, dirs: torch.Tensor, half_extent) -> tuple:
+    """Entry and exit distances (N,) of rays (N, 3) through the box [-h, h]^3 (h: (3,) or a float).
+
+    Slab test; axis-parallel directions are exact (inside the slab the axis does not limit the
+    ray, outside it the ray misses). A ray misses the box where exit <= entry.
+    """
+    h = torch.as_tensor(half_extent, dtype=origins.dtype, device=origins.device).expand(3)
+    parallel = dirs == 0
+    safe = torch.where(parallel, torch.ones_like(dirs), dirs)
+    t0, t1 = (-h - origins) / safe, (h - origins) / safe
+    inside = origins.abs() <= h
+    unlimited = torch.where(inside, torch.inf, -torch.inf)
+    lo = torch.where(parallel, -unlimited, torch.minimum(t0, t1))
+    hi = torch.where(parallel, unlimited, torch.maximum(t0, t1))
+    return lo.max(dim=-1).values, hi.min(dim=-1).values
+
+
 def render_rays_chunked(field: Field, origins: torch.Tensor, dirs: torch.Tensor, ray_start, ray_end,
-                        settings: RenderSettings, generator: Optional[torch.Generator] = None):
+                        settings: RenderSettings, generator: Optional[torch.Generator] = None, box=None):
     """:func:`render_rays` over flat rays (N, 3) in chunks of ``settings.chunk_rays`` to bound memory.
 
-    ray_start/ray_end: floats or (N,) tensors. Returns (features (N,C), depth (N,), alpha (N,)).
+    ray_start/ray_end: floats or (N,) tensors. ``box``: half extents of the axis-aligned box outside
+    which the field shows nothing; each ray's range is clipped to it and rays that miss it are
+    not marched (features 0, alpha 0, depth ray_end). The random numbers of all rays are drawn
+    first (:func:`draw_ray_noise`), so the result does not depend on ``chunk_rays``.
+    Returns (features (N,C), depth (N,), alpha (N,)).
     """
-    outs, depths, alphas = [], [], []
-    per_ray = torch.is_tensor(ray_start) and ray_start.dim() > 0
-    for i in range(0, origins.shape[0], settings.chunk_rays):
-        sl = slice(i, i + settings.chunk_rays)
-        o, d = origins[None, sl], dirs[None, sl]
-        s = ray_start[sl] if per_ray else ray_start
-        e = ray_end[sl] if per_ray else ray_end
-        f, z, a = render_rays(field, o, d, s, e, settings, generator)
-        outs.append(f[0])
+    n, device = origins.shape[0], origins.device
+    start = torch.as_tensor(ray_start, dtype=torch.float32, device=device).expand(n)
+    end = torch.as_tensor(ray_end, dtype=torch.float32, device=device).expand(n)
+    noise = draw_ray_noise(n, settings, generator)
+    if noise is not None:
+        noise = tuple(None if u is None else u.to(device, non_blocking=True) for u in noise)
+    todo = None
+    if box is not None:
+        t_near, t_far = box_interval(origins, dirs, box)
+        clipped_start, clipped_end = torch.maximum(start, t_near), torch.minimum(end, t_far)
+        todo = torch.nonzero(clipped_end > clipped_start).squeeze(1)  # one host sync per call
+        start, end_marched = clipped_start, clipped_end
+    else:
+        end_marched = end
+    total = n if todo is None else todo.numel()
+    feats, depths, alphas = [], [], []
+    for i in range(0, total, settings.chunk_rays):
+        idx = slice(i, i + settings.chunk_rays) if todo is None else todo[i:i + settings.chunk_rays]
+        chunk_noise = None if noise is None else tuple(None if u is None else u[idx] for u in noise)
+        f, z, a = render_rays(field, origins[None, idx], dirs[None, idx], start[idx][None, :, None],
+                              end_marched[idx][None, :, None], settings, noise=chunk_noise)
+        feats.append(f[0])
         depths.append(z[0, :, 0])
         alphas.append(a[0, :, 0])
-    return torch.cat(outs), torch.cat(depths), torch.cat(alphas)
+    if todo is None:
+        return torch.cat(feats), torch.cat(depths), torch.cat(alphas)
+    channels = feats[0].shape[-1] if feats else field(origins[None, :1], dirs[None, :1])[0].shape[-1]
+    out_f, out_z, out_a = origins.new_zeros(n, channels), end.clone(), origins.new_zeros(n)
+    if feats:
+        out_f.index_copy_(0, todo, torch.cat(feats))
+        out_z.index_copy_(0, todo, torch.cat(depths))
+        out_a.index_copy_(0, todo, torch.cat(alphas))
+    return out_f, out_z, out_a

@@ -60,14 +60,10 @@ _opacity = _number(lambda v: 0 <= v < 1, "at least 0 and below 1")
 
 def _check_device(device: str) -> None:
     """UserError unless ``device`` is ``cpu`` or an available ``cuda[:N]``."""
-    import torch
-    if device == "cpu":
-        return
-    kind, _, index = device.partition(":")
-    if kind != "cuda" or (index and not index.isdigit()):
-        raise UserError(f"unknown device {device!r}; use cpu, cuda or cuda:N")
-    if not torch.cuda.is_available():
-        raise UserError(f"--device {device}: CUDA is not available on this machine (torch {torch.__version__})")
+    from datagen.device import resolve_device
+    if device == "auto":
+        raise UserError("--device auto: name the device (cpu, cuda or cuda:N)")
+    resolve_device(device)
 
 
 def _model_path_options(p, where_now: bool) -> None:

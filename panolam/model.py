@@ -278,12 +278,11 @@ class PanoLAM(nn.Module):
         cfg = self.cfg
         r = resolution or cfg.triplane_render_resolution
         b, v = cam2world.shape[:2]
-        origins, dirs = rays(cam2world.reshape(b * v, 4, 4).float().cpu(), K_norm.reshape(b * v, 3, 3).float().cpu(), r)
-        origins = origins.reshape(b, v * r * r, 3).to(planes.device)
-        dirs = dirs.reshape(b, v * r * r, 3).to(planes.device)
-        near, far = ray_range(radius.detach().cpu().numpy())
-        near = torch.from_numpy(np.repeat(near.reshape(b, v), r * r, axis=1)).float()
-        far = torch.from_numpy(np.repeat(far.reshape(b, v), r * r, axis=1)).float()
+        dev = planes.device
+        origins, dirs = rays(cam2world.reshape(b * v, 4, 4).float().to(dev), K_norm.reshape(b * v, 3, 3).float().to(dev), r)
+        origins, dirs = origins.reshape(b, v * r * r, 3), dirs.reshape(b, v * r * r, 3)
+        near, far = (t.reshape(b, v).repeat_interleave(r * r, dim=1)
+                     for t in ray_range(radius.detach().float().to(dev)))
         decoder, box = self.triplane_decoder, self.box_warp
 
         def field(points, _dirs):
@@ -291,7 +290,7 @@ class PanoLAM(nn.Module):
             return feats, torch.where(crop_outside(points, box), torch.full_like(sigma, -1e3), sigma)
 
         settings = RenderSettings(*cfg.triplane_render_samples, density_activation="softplus", deterministic=True)
-        feats, _, alpha = render_rays(field, origins, dirs, near.to(planes.device), far.to(planes.device), settings)
+        feats, _, alpha = render_rays(field, origins, dirs, near, far, settings)
         rgb = feats[..., :3] if decoder.activation == "sigmoid" else (feats[..., :3] + 1) / 2
         image = lambda t: t.reshape(b, v, r, r, -1).permute(0, 1, 4, 2, 3)  # noqa: E731
         return image(rgb), image(alpha)

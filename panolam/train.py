@@ -329,24 +329,27 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
             _log_text(out, "tri-plane feature loss (lambda_6): " + (
                 "on (the dataset stores SphereHead planes)" if "planes" in parts else
                 "off (no SphereHead planes of this layout in the dataset, or no tri-plane branch)"))
-        # Every process takes the same decisions: a bad loss anywhere or the time limit stops them all.
-        bad_loss, out_of_time = _agreed(world, device, not bool(torch.isfinite(loss)),
-                                        cfg.time_limit_s is not None and time.monotonic() - started > cfg.time_limit_s)
-        if bad_loss:
-            bad = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in parts.items())
-            raise TrainingError(f"non-finite loss at step {step} (subjects {batch.key} on process {rank}): {bad}")
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         grad_norm = torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)  # of the averaged gradients: agreed
-        if not torch.isfinite(grad_norm):
+        # The step's one read from the device: the loss, its parts and the gradient norm together.
+        loss_v, norm_v, *part_v = torch.stack([loss.detach().float(), grad_norm.float(),
+                                               *(v.detach().float() for v in parts.values())]).tolist()
+        # Every process takes the same decisions: a bad loss anywhere or the time limit stops them all.
+        bad_loss, out_of_time = _agreed(world, device, not math.isfinite(loss_v),
+                                        cfg.time_limit_s is not None and time.monotonic() - started > cfg.time_limit_s)
+        if bad_loss:
+            bad = ", ".join(f"{k}={v:.4g}" for k, v in zip(parts, part_v))
+            raise TrainingError(f"non-finite loss at step {step} (subjects {batch.key} on process {rank}): {bad}")
+        if not math.isfinite(norm_v):
             raise TrainingError(f"non-finite gradient at step {step} (subjects {batch.key} on process {rank}); "
                                 f"the last checkpoint is intact")
         lr = scheduler.get_last_lr()[0]
         optimizer.step()
         scheduler.step()
         step += 1
-        entry = {"step": step, "loss": float(loss.detach()), "lr": lr, "grad_norm": float(grad_norm),
-                 "seconds": time.perf_counter() - t0, **{k: float(v.detach()) for k, v in parts.items()}}
+        entry = {"step": step, "loss": loss_v, "lr": lr, "grad_norm": norm_v,
+                 "seconds": time.perf_counter() - t0, **dict(zip(parts, part_v))}
         history.append(entry)
         if bar is not None:
             bar.update(1)

@@ -13,9 +13,16 @@ SHARED = Path(os.environ.get("PANOLAM_SHARED", Path(__file__).resolve().parents[
 FAST_PROCEDURAL = {"grid_resolution": 48}
 
 
-def gan_fixture(model: str, suffix: str) -> Path:
-    """Path of a shared GAN fixture file; skips the test (with the reason) when it is absent."""
-    path = SHARED / "fixtures" / "gan" / model / f"{model}-tiny{suffix}"
+GAN_SETS = {"gan": "tiny", "gan-sr": "sr"}  # fixture set -> file name tag
+
+
+def gan_fixture(model: str, suffix: str, fixture_set: str = "gan") -> Path:
+    """Path of a shared GAN fixture file; skips the test (with the reason) when it is absent.
+
+    Sets: 'gan' (tiny generators with the 2X super-resolution), 'gan-sr' (the released 512
+    checkpoints' 8XDC super-resolution at full size, 512 px from a 128 px neural render).
+    """
+    path = SHARED / "fixtures" / fixture_set / model / f"{model}-{GAN_SETS[fixture_set]}{suffix}"
     if not path.exists():
         pytest.skip(f"shared GAN fixture {path} not found (set PANOLAM_SHARED to the shared/ folder)")
     return path

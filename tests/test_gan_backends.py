@@ -170,3 +170,112 @@ def test_solid_background_with_the_mask():
     expected = out.rgb * 0 + 1.0
     weight = 1 - out.alpha[..., None]
     assert np.all(out.rgb >= weight * expected - 1e-5)  # at least the background's share of white
+
+
+# -- how the work is split: chunks, batches, ray clipping, devices --------------------------------------
+
+def _views(n, protocol="360"):
+    from datagen.cameras import sample_views
+    from datagen.generators.base import STREAM_CAMERAS, subject_rng
+    return sample_views(protocol, subject_rng(0, 0, STREAM_CAMERAS), n)
+
+
+def test_chunk_plan_follows_the_memory_budget():
+    from datagen.generators.gan import CHUNK_RAYS_QUANTUM, MIN_SR_BATCH, chunk_plan
+    G = make_generator("eg3d", str(gan_fixture("eg3d", ".pkl"))).G
+    small, large = chunk_plan(G, 16 * 2 ** 20, False), chunk_plan(G, 16 * 2 ** 30, False)
+    assert small.rays % CHUNK_RAYS_QUANTUM == 0 and large.rays % CHUNK_RAYS_QUANTUM == 0
+    assert small.rays < large.rays and MIN_SR_BATCH <= small.images < large.images
+    assert chunk_plan(G, 16 * 2 ** 30, True).images > large.images  # fp16 activations are half the size
+
+
+@pytest.mark.parametrize("n_views, size, expected", [(32, 3, 11), (7, 3, 2), (1, 4, 1), (5, 4, 1), (4, 4, 1)])
+def test_super_resolution_batches_never_hold_a_lone_view(n_views, size, expected):
+    from datagen.generators.gan import sr_batches
+    batches = sr_batches(n_views, size)
+    assert len(batches) == expected and batches[0][0] == 0 and batches[-1][1] == n_views
+    assert all(a[1] == b[0] for a, b in zip(batches, batches[1:]))
+    assert n_views == 1 or all(last - first >= 2 for first, last in batches)
+
+
+@pytest.mark.parametrize("model", ["eg3d", "spherehead"])
+def test_budget_changes_the_split_not_the_images(model):
+    """Ray chunks of whole 1024s and SR batches of two or more views give the same bits."""
+    views = _views(6)
+    out = []
+    for budget in (8, 4096):
+        g = make_generator(model, str(gan_fixture(model, ".pkl")), {"memory_budget_mb": budget})
+        out.append(g.render(g.sample_subject(0, 3), views, 64))
+    assert g.plan.rays >= 4 * 1024 and g.plan.images >= 6
+    for a, b in zip((out[0].rgb, out[0].alpha, out[0].depth), (out[1].rgb, out[1].alpha, out[1].depth)):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_clipped_rays_stay_inside_the_box_and_misses_are_skipped():
+    from datagen.render import RenderSettings, render_rays_chunked
+    origins = torch.tensor([[0.0, 0.0, 3.0], [0.0, 2.0, 3.0], [0.3, 0.0, 3.0]])
+    dirs = torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0], [0.0, 0.0, -1.0]])
+    seen = []
+
+    def field(points, _dirs):
+        seen.append(points.reshape(-1, 3))
+        return torch.ones(*points.shape[:-1], 2), torch.full((*points.shape[:-1], 1), 10.0)
+
+    f, depth, alpha = render_rays_chunked(field, origins, dirs, 1.0, 5.0, RenderSettings(8, 8, "none", True),
+                                          box=(0.5, 0.5, 0.5))
+    pts = torch.cat(seen)
+    assert float(pts.abs().max()) <= 0.5 + 1e-6  # no sample outside the box
+    assert alpha[1] == 0 and depth[1] == 5.0 and torch.all(f[1] == 0)  # the ray above the box is skipped
+    assert alpha[0] > 0.99 and alpha[2] > 0.99
+    assert 2.5 - 1e-5 <= float(depth[0]) <= 3.5
+
+
+def test_box_interval_on_axis_parallel_and_missing_rays():
+    from datagen.render import box_interval
+    o = torch.tensor([[0.0, 0.0, 2.0], [0.5, 0.0, 2.0], [0.6, 0.0, 2.0], [0.0, 0.0, 0.0], [0.0, 0.0, 2.0]])
+    d = torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    near, far = box_interval(o, d, 0.5)
+    assert near[0] == 1.5 and far[0] == 2.5
+    assert near[1] == 1.5 and far[1] == 2.5  # grazing the face x = 0.5
+    assert far[2] <= near[2]  # parallel to and outside the slab: a miss
+    assert near[3] == -0.5 and far[3] == 0.5  # from inside
+    assert far[4] <= 0  # the box is behind
+    assert all(torch.isfinite(t).all() for t in (near[:2], far[:2]))
+
+
+def test_clip_rays_option_renders_the_same_head():
+    views = _views(4)
+    plain = make_generator("panohead", str(gan_fixture("panohead", ".pkl")), {"deterministic": True})
+    clipped = make_generator("panohead", str(gan_fixture("panohead", ".pkl")),
+                             {"deterministic": True, "clip_rays": True})
+    s = plain.sample_subject(0, 0)
+    a, b = plain.render(s, views, 64), clipped.render(s, views, 64)
+    assert clipped.describe()["config"]["clip_rays"] is True
+    assert np.abs(a.alpha - b.alpha).mean() < 0.02
+    assert 10 * np.log10(1 / np.mean((a.rgb - b.rgb) ** 2)) > 25
+
+
+def test_precision_and_device_are_checked_and_recorded():
+    from datagen.errors import UserError
+    with pytest.raises(UserError, match="precision"):
+        make_generator("eg3d", str(gan_fixture("eg3d", ".pkl")), {"precision": "bf16"})
+    with pytest.raises(UserError, match="device"):
+        make_generator("eg3d", str(gan_fixture("eg3d", ".pkl")), {"device": "cuda:x"})
+    g = make_generator("eg3d", str(gan_fixture("eg3d", ".pkl")), {"device": "cpu"})
+    assert g.describe()["config"]["precision"] == "fp32" and "memory_budget_mb" not in g.describe()["config"]
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("model", ["eg3d", "spherehead"])
+def test_cuda_renders_match_the_cpu(model):
+    """On CUDA: fp32 agrees with the CPU; 'auto' runs the SR in fp16 and stays close."""
+    views = _views(4)
+    cpu = make_generator(model, str(gan_fixture(model, ".pkl", "gan-sr")), {"device": "cpu", "deterministic": True})
+    ref = cpu.render(cpu.sample_subject(0, 1), views, 128)
+    for precision, tol in (("fp32", 2e-3), ("auto", 3e-2)):
+        g = make_generator(model, str(gan_fixture(model, ".pkl", "gan-sr")),
+                           {"device": "cuda", "deterministic": True, "precision": precision})
+        assert g.describe()["config"]["precision"] == ("fp32" if precision == "fp32" else "fp16")
+        out = g.render(g.sample_subject(0, 1), views, 128)
+        assert np.isfinite(out.rgb).all()
+        assert np.abs(out.rgb - ref.rgb).mean() < tol and np.abs(out.alpha - ref.alpha).max() < 1e-3

@@ -174,3 +174,21 @@ def test_config_round_trip_and_errors():
         preset("tiny+fast")
     with pytest.raises(ValueError, match="unknown model settings"):
         ModelConfig.from_dict({**cfg.to_dict(), "bogus": 1})
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_forward_and_renders_on_cuda_match_the_cpu():
+    """The whole forward, the tri-plane render and the splats run on the GPU with no host round trip."""
+    m = small()
+    img = torch.rand(1, 3, 64, 64, generator=torch.Generator().manual_seed(1))
+    c2w, K = front_cameras(1)
+    with torch.no_grad():
+        rec = m(img)
+        ref = m.render_triplane(rec.planes, c2w, K, torch.full((1, 2), 2.7))[0]
+        g = m.cuda()
+        rec_g = g(img.cuda())
+        out = g.render_triplane(rec_g.planes, c2w.cuda(), K.cuda(), torch.full((1, 2), 2.7, device="cuda"))[0]
+        rgb, _, _ = render_views(rec_g.dense, c2w.cuda(), K.cuda(), 24)
+    assert out.is_cuda and rgb.is_cuda and torch.isfinite(rgb).all()
+    assert torch.allclose(out.cpu(), ref, atol=1e-3)
+    assert torch.allclose(rec_g.dense.means.cpu(), rec.dense.means, atol=1e-4)

@@ -3,11 +3,12 @@
 Parameter names and shapes match the released EG3D / PanoHead / SphereHead state dicts. Weights are
 stored unscaled and the equalized-learning-rate gains are applied at run time (FC: lr_mul/sqrt(in),
 bias * lr_mul; conv: 1/sqrt(in*k*k); ToRGB styles: 1/sqrt(in)), as in the originals.
-Noise modes: 'const' (stored noise * strength), 'none', or 'random' (drawn from a torch.Generator).
+Noise modes: 'const' (stored noise * strength), 'none', or 'random' (drawn from a CPU torch.Generator).
 """
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 from torch import nn
@@ -99,7 +100,8 @@ def _noise(layer, x, noise_mode, generator):
         return layer.noise_const * layer.noise_strength
     if noise_mode == "random":
         shape = [x.shape[0], 1, layer.resolution, layer.resolution]
-        return torch.randn(shape, generator=generator, device=x.device) * layer.noise_strength
+        # drawn on the CPU from the subject's generator, so the noise does not depend on the device
+        return torch.randn(shape, generator=generator).to(x.device) * layer.noise_strength
     raise ValueError(f"unknown noise mode {noise_mode!r}")
 
 
@@ -143,12 +145,18 @@ class ToRGBLayer(nn.Module):
 
 
 class SynthesisBlock(nn.Module):
-    """Two modulated convs (the first upsamples 2x unless ``upsample=False``) and a skip ToRGB."""
+    """Two modulated convs (the first upsamples 2x unless ``upsample=False``) and a skip ToRGB.
+
+    ``use_fp16``: the block runs in float16 when its caller allows it (``fp16=True``; the originals
+    do so on CUDA only); the image skip path stays float32. Without upsampling (the originals'
+    ``SynthesisBlockNoUp``) the ToRGB output is added to ``img`` in place, as there, so a caller's
+    ``image_raw`` (and, for EG3D, the feature image it is a view of) changes with it.
+    """
 
     def __init__(self, in_channels, out_channels, w_dim, resolution, img_channels, is_last, conv_clamp=None,
-                 upsample=True):
+                 upsample=True, use_fp16=False):
         super().__init__()
-        self.in_channels, self.upsample = in_channels, upsample
+        self.in_channels, self.upsample, self.use_fp16 = in_channels, upsample, use_fp16
         self.register_buffer("resample_filter", setup_filter())
         self.num_conv = 0
         if in_channels == 0:
@@ -162,41 +170,48 @@ class SynthesisBlock(nn.Module):
         self.torgb = ToRGBLayer(out_channels, img_channels, w_dim, conv_clamp=conv_clamp)
         self.num_torgb = 1
 
-    def forward(self, x, img, ws, noise_mode="const", fused_modconv=True, generator=None):
+    def forward(self, x, img, ws, noise_mode="const", fused_modconv=True, generator=None, fp16=False):
         w_iter = iter(ws.unbind(dim=1))
         kw = dict(noise_mode=noise_mode, fused_modconv=fused_modconv, generator=generator)
+        dtype = torch.float16 if (self.use_fp16 and fp16) else torch.float32
         if self.in_channels == 0:
-            x = self.const.unsqueeze(0).repeat([ws.shape[0], 1, 1, 1])
+            x = self.const.to(dtype).unsqueeze(0).repeat([ws.shape[0], 1, 1, 1])
             x = self.conv1(x, next(w_iter), **kw)
         else:
-            x = self.conv0(x, next(w_iter), **kw)
+            x = self.conv0(x.to(dtype), next(w_iter), **kw)
             x = self.conv1(x, next(w_iter), **kw)
-        if img is not None and self.upsample:
-            img = upsample2d(img, self.resample_filter)
-        y = self.torgb(x, next(w_iter), fused_modconv=fused_modconv)
-        img = img + y if img is not None else y
-        return x, img
+        y = self.torgb(x, next(w_iter), fused_modconv=fused_modconv).float()
+        if img is None:
+            return x, y
+        if self.upsample:
+            return x, upsample2d(img, self.resample_filter) + y
+        return x, img.add_(y)
 
 
 class SynthesisNetwork(nn.Module):
-    """Skip-architecture StyleGAN2 synthesis from 4x4 to ``img_resolution``."""
+    """Skip-architecture StyleGAN2 synthesis from 4x4 to ``img_resolution``.
+
+    The top ``num_fp16_res`` resolutions (at least 8x8) are the blocks the originals run in float16.
+    """
 
     def __init__(self, w_dim, img_resolution, img_channels, channel_base=32768, channel_max=512, conv_clamp=None,
-                 **_ignored):
+                 num_fp16_res=0, **_ignored):
         super().__init__()
         self.w_dim, self.img_resolution, self.img_channels = w_dim, img_resolution, img_channels
         log2 = int(math.log2(img_resolution))
         self.block_resolutions = [2 ** i for i in range(2, log2 + 1)]
         channels = {r: min(channel_base // r, channel_max) for r in self.block_resolutions}
+        fp16_resolution = max(2 ** (log2 + 1 - num_fp16_res), 8)
         self.num_ws = 0
         for res in self.block_resolutions:
             in_ch = channels[res // 2] if res > 4 else 0
-            block = SynthesisBlock(in_ch, channels[res], w_dim, res, img_channels, res == img_resolution, conv_clamp)
+            block = SynthesisBlock(in_ch, channels[res], w_dim, res, img_channels, res == img_resolution, conv_clamp,
+                                   use_fp16=res >= fp16_resolution)
             self.num_ws += block.num_conv
             setattr(self, f"b{res}", block)
         self.num_ws += 1  # the last ToRGB
 
-    def forward(self, ws, noise_mode="const", fused_modconv=True, generator=None):
+    def forward(self, ws, noise_mode="const", fused_modconv=True, generator=None, fp16=False):
         ws = ws.to(torch.float32)
         x = img = None
         w_idx = 0
@@ -204,7 +219,8 @@ class SynthesisNetwork(nn.Module):
             block = getattr(self, f"b{res}")
             cur = ws.narrow(1, w_idx, block.num_conv + block.num_torgb)
             w_idx += block.num_conv
-            x, img = block(x, img, cur, noise_mode=noise_mode, fused_modconv=fused_modconv, generator=generator)
+            x, img = block(x, img, cur, noise_mode=noise_mode, fused_modconv=fused_modconv, generator=generator,
+                           fp16=fp16)
         return img
 
 
@@ -218,45 +234,71 @@ class StyleGAN2Backbone(nn.Module):
         self.mapping = MappingNetwork(z_dim, c_dim, w_dim, self.num_ws, **(mapping_kwargs or {}))
 
 
+@dataclass(frozen=True)
+class SRVariant:
+    """One of the originals' super-resolution classes (EG3D's ``training/superresolution.py``).
+
+    block0 upsamples 2x except in the NoUp variants; ``filter_buffer``: the module registers its
+    own ``resample_filter`` (all but 8XDC); ``resize_if``: the input is resized to
+    ``input_resolution`` when its size differs ('!=') or only when it is smaller ('<');
+    ``antialias``: that resize honours ``sr_antialias`` (the deep fp32 variant never antialiases).
+    """
+
+    input_resolution: int
+    output_resolution: int
+    channels: tuple
+    block0_upsamples: bool
+    filter_buffer: bool = True
+    resize_if: str = "!="
+    antialias: bool = True
+
+
 SUPERRESOLUTION = {
-    # class name -> (input resolution, output resolution, block0 channels, block1 channels, block0 upsamples)
-    "SuperresolutionHybrid2X": (64, 128, 128, 64, False),
-    "SuperresolutionHybrid4X": (128, 256, 128, 64, False),
-    "SuperresolutionHybrid8X": (128, 512, 128, 64, True),
-    "SuperresolutionHybrid8XDC": (128, 512, 256, 128, True),
+    "SuperresolutionHybrid2X": SRVariant(64, 128, (128, 64), False),
+    "SuperresolutionHybrid4X": SRVariant(128, 256, (128, 64), False, resize_if="<"),
+    "SuperresolutionHybrid8X": SRVariant(128, 512, (128, 64), True),
+    "SuperresolutionHybrid8XDC": SRVariant(128, 512, (256, 128), True, filter_buffer=False),
+    "SuperresolutionHybridDeepfp32": SRVariant(128, 256, (128, 64), False, resize_if="<", antialias=False),
 }
 
 
 class Superresolution(nn.Module):
     """EG3D's hybrid super-resolution: resize the neural render, then two synthesis blocks.
 
-    Both blocks use ``ws[:, -1]`` three times. ``conv_clamp`` is 256 whenever the original enables
-    fp16 for it (``sr_num_fp16_res > 0``), even when running in float32.
+    Both blocks use ``ws[:, -1]`` three times. With ``sr_num_fp16_res > 0`` the blocks are the
+    originals' fp16 blocks: ``conv_clamp`` 256 always (in float32 too), float16 arithmetic only
+    when the caller passes ``fp16=True``.
     """
 
     def __init__(self, kind, channels, img_resolution, sr_num_fp16_res=0, sr_antialias=True, **_ignored):
         super().__init__()
         if kind not in SUPERRESOLUTION:
             raise ValueError(f"unknown superresolution module {kind!r}")
-        in_res, out_res, ch0, ch1, up0 = SUPERRESOLUTION[kind]
-        if img_resolution != out_res:
-            raise ValueError(f"{kind} makes {out_res}x{out_res} images, not {img_resolution}")
-        self.input_resolution, self.sr_antialias = in_res, sr_antialias
-        clamp = 256 if sr_num_fp16_res > 0 else None
-        res0 = in_res * 2 if up0 else in_res
-        self.block0 = SynthesisBlock(channels, ch0, 512, res0, 3, False, clamp, upsample=up0)
-        self.block1 = SynthesisBlock(ch0, ch1, 512, out_res, 3, True, clamp, upsample=True)
-        self.register_buffer("resample_filter", setup_filter())
+        v = SUPERRESOLUTION[kind]
+        if img_resolution != v.output_resolution:
+            raise ValueError(f"{kind} makes {v.output_resolution}x{v.output_resolution} images, not {img_resolution}")
+        self.variant = v
+        self.input_resolution, self.sr_antialias = v.input_resolution, sr_antialias and v.antialias
+        use_fp16 = sr_num_fp16_res > 0
+        clamp = 256 if use_fp16 else None
+        ch0, ch1 = v.channels
+        res0 = v.input_resolution * 2 if v.block0_upsamples else v.input_resolution
+        self.block0 = SynthesisBlock(channels, ch0, 512, res0, 3, False, clamp, upsample=v.block0_upsamples,
+                                     use_fp16=use_fp16)
+        self.block1 = SynthesisBlock(ch0, ch1, 512, v.output_resolution, 3, True, clamp, use_fp16=use_fp16)
+        if v.filter_buffer:
+            self.register_buffer("resample_filter", setup_filter())
 
-    def forward(self, rgb, x, ws, noise_mode="none", fused_modconv=True, generator=None):
+    def forward(self, rgb, x, ws, noise_mode="none", fused_modconv=True, generator=None, fp16=False):
         ws = ws[:, -1:, :].repeat(1, 3, 1)
-        if x.shape[-1] != self.input_resolution:
+        size = x.shape[-1]
+        if size < self.input_resolution or (size != self.input_resolution and self.variant.resize_if == "!="):
             size = (self.input_resolution, self.input_resolution)
             x = torch.nn.functional.interpolate(x, size=size, mode="bilinear", align_corners=False,
                                                 antialias=self.sr_antialias)
             rgb = torch.nn.functional.interpolate(rgb, size=size, mode="bilinear", align_corners=False,
                                                   antialias=self.sr_antialias)
-        kw = dict(noise_mode=noise_mode, fused_modconv=fused_modconv, generator=generator)
+        kw = dict(noise_mode=noise_mode, fused_modconv=fused_modconv, generator=generator, fp16=fp16)
         x, rgb = self.block0(x, rgb, ws, **kw)
         x, rgb = self.block1(x, rgb, ws, **kw)
         return rgb

@@ -2,7 +2,10 @@
 
 FIR up/down-sampling (``upfirdn2d``), convolution with resampling, bias + activation with gain and
 clamp, and modulated convolution, with the same arithmetic as the released generators so that
-their checkpoints reproduce within float32 rounding. Tensors are NCHW float32.
+their checkpoints reproduce within float32 rounding. Tensors are NCHW, float32 or (in the blocks the
+originals run in half precision on CUDA) float16; float16 follows the originals' fp16 arithmetic:
+weights and styles are pre-normalized before a demodulated convolution, and bias + activation are
+computed in float32 and stored in float16, as their fused CUDA kernel does.
 """
 from __future__ import annotations
 
@@ -21,21 +24,38 @@ ACTIVATIONS = {
 }
 
 
+# In-place forms (for tensors the caller owns); gradients flow through them as through the others.
+INPLACE_ACTIVATIONS = {
+    "linear": lambda x: x,
+    "relu": F.relu_,
+    "lrelu": lambda x: F.leaky_relu_(x, 0.2),
+}
+
+
 def default_gain(activation: str) -> float:
     return ACTIVATIONS[activation][1]
 
 
-def bias_act(x, b=None, act="linear", gain=None, clamp=None, dim=1):
-    """x + b (broadcast along ``dim``), activation, times gain (default: the activation's), clamp."""
+def bias_act(x, b=None, act="linear", gain=None, clamp=None, dim=1, inplace=False):
+    """x + b (broadcast along ``dim``), activation, times gain (default: the activation's), clamp.
+
+    A float16 ``x`` is computed in float32 and returned in float16. ``inplace``: ``x`` may be
+    overwritten when there is no bias (with a bias the sum is a new tensor anyway).
+    """
+    if x.dtype == torch.float16:
+        return bias_act(x.float(), None if b is None else b.float(), act, gain, clamp, dim).half()
     fn, g = ACTIVATIONS[act]
     gain = g if gain is None else float(gain)
     if b is not None:
         x = x + b.reshape([-1 if i == dim else 1 for i in range(x.ndim)])
-    x = fn(x)
+    elif not inplace:
+        x = x.clone()
+    # From here x is a fresh tensor: the remaining steps overwrite it (same values, no new buffers).
+    x = INPLACE_ACTIVATIONS[act](x) if act in INPLACE_ACTIVATIONS else fn(x)
     if gain != 1:
-        x = x * gain
+        x = x.mul_(gain)
     if clamp is not None and clamp >= 0:
-        x = x.clamp(-clamp, clamp)
+        x = x.clamp_(-clamp, clamp)
     return x
 
 
@@ -113,9 +133,16 @@ def conv2d_resample(x, w, f=None, up=1, padding=0, groups=1, flip_weight=True):
 
 def modulated_conv2d(x, weight, styles, noise=None, up=1, padding=0, resample_filter=None, demodulate=True,
                      flip_weight=True, fused_modconv=True):
-    """StyleGAN2 modulated convolution; styles (N, in_channels) scale the input channels."""
+    """StyleGAN2 modulated convolution; styles (N, in_channels) scale the input channels.
+
+    ``weight`` and ``styles`` are float32; the convolution runs in ``x``'s dtype.
+    """
     n = x.shape[0]
     out_ch, in_ch, kh, kw = weight.shape
+    if x.dtype == torch.float16 and demodulate:
+        # The originals' guard against fp16 overflow; demodulation cancels both scales.
+        weight = weight * (1 / math.sqrt(in_ch * kh * kw) / weight.norm(float("inf"), dim=[1, 2, 3], keepdim=True))
+        styles = styles / styles.norm(float("inf"), dim=1, keepdim=True)
     w = None
     dcoefs = None
     if demodulate or fused_modconv:
@@ -124,18 +151,21 @@ def modulated_conv2d(x, weight, styles, noise=None, up=1, padding=0, resample_fi
         dcoefs = (w.square().sum(dim=[2, 3, 4]) + 1e-8).rsqrt()
     if demodulate and fused_modconv:
         w = w * dcoefs.reshape(n, -1, 1, 1, 1)
+    dt = x.dtype
+    if noise is not None:
+        noise = noise.to(dt)
     if not fused_modconv:
-        x = x * styles.reshape(n, -1, 1, 1)
-        x = conv2d_resample(x, weight, f=resample_filter, up=up, padding=padding, flip_weight=flip_weight)
+        x = x * styles.to(dt).reshape(n, -1, 1, 1)
+        x = conv2d_resample(x, weight.to(dt), f=resample_filter, up=up, padding=padding, flip_weight=flip_weight)
         if demodulate and noise is not None:
-            return torch.addcmul(noise, x, dcoefs.reshape(n, -1, 1, 1))
+            return torch.addcmul(noise, x, dcoefs.to(dt).reshape(n, -1, 1, 1))
         if demodulate:
-            return x * dcoefs.reshape(n, -1, 1, 1)
+            return x * dcoefs.to(dt).reshape(n, -1, 1, 1)
         if noise is not None:
             return x + noise
         return x
     x = x.reshape(1, -1, *x.shape[2:])
-    w = w.reshape(-1, in_ch, kh, kw)
+    w = w.reshape(-1, in_ch, kh, kw).to(dt)
     x = conv2d_resample(x, w, f=resample_filter, up=up, padding=padding, groups=n, flip_weight=flip_weight)
     x = x.reshape(n, -1, *x.shape[2:])
     if noise is not None:

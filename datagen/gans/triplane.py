@@ -30,6 +30,10 @@ from .networks import (Conv2dLayer, FullyConnectedLayer, MappingNetwork, StyleGA
 
 KINDS = ("eg3d", "panohead", "spherehead")
 TRIPLANE_CROP = 0.1
+# 'auto': the originals' float16 blocks (super-resolution, and any backbone blocks the checkpoint
+# marks fp16) run in float16 on CUDA and in float32 elsewhere, as in the originals; 'fp16' forces
+# them to float16 on any device; 'fp32' never uses float16.
+PRECISIONS = ("auto", "fp16", "fp32")
 
 
 class OSGDecoder(nn.Module):
@@ -139,7 +143,7 @@ class TriPlaneGenerator(nn.Module):
 
     def __init__(self, kind, z_dim, c_dim, w_dim, img_resolution, img_channels=3, sr_num_fp16_res=0,
                  mapping_kwargs=None, rendering_kwargs=None, sr_kwargs=None, channel_base=32768, channel_max=512,
-                 conv_clamp=None, **_ignored):
+                 conv_clamp=None, num_fp16_res=0, **_ignored):
         super().__init__()
         if kind not in KINDS:
             raise ValueError(f"unknown generator kind {kind!r}")
@@ -147,7 +151,8 @@ class TriPlaneGenerator(nn.Module):
         self.kind, self.rendering_kwargs = kind, rk
         self.z_dim, self.c_dim, self.w_dim, self.img_resolution = z_dim, c_dim, w_dim, img_resolution
         self.depth = int(rk.get("triplane_depth", 1))
-        synthesis = dict(channel_base=channel_base, channel_max=channel_max, conv_clamp=conv_clamp)
+        synthesis = dict(channel_base=channel_base, channel_max=channel_max, conv_clamp=conv_clamp,
+                         num_fp16_res=num_fp16_res)
         if kind == "eg3d":
             backbone_res, backbone_ch = 256, 32 * 3
         elif kind == "panohead":
@@ -169,11 +174,15 @@ class TriPlaneGenerator(nn.Module):
             self.bcg_synthesis = None
             if rk.get("use_background", False):
                 self.bcg_synthesis = SynthesisNetwork(w_dim, self.superresolution.input_resolution, 32,
-                                                      channel_base=channel_base // 2, channel_max=channel_max,
-                                                      conv_clamp=conv_clamp)
+                                                      **{**synthesis, "channel_base": channel_base // 2})
             self.t_mapping = MappingNetwork(z_dim, c_dim, 3, num_ws=1, last_activation="linear", lr_multiplier=1.0,
                                             **(mapping_kwargs or {}))
         self.neural_rendering_resolution = 64
+        self.precision = "auto"
+
+    def fp16(self, t: torch.Tensor) -> bool:
+        """Whether the float16-capable blocks run in float16 for tensors on ``t``'s device."""
+        return self.precision == "fp16" or (self.precision == "auto" and t.device.type == "cuda")
 
     # -- latent side ------------------------------------------------------------------------------
     def _c(self, c):
@@ -191,7 +200,7 @@ class TriPlaneGenerator(nn.Module):
     # -- per-subject work ---------------------------------------------------------------------------
     def planes(self, ws, noise_mode="const", generator=None):
         """Backbone output shaped for :func:`sample_planes`."""
-        raw = self.backbone.synthesis(ws, noise_mode=noise_mode, generator=generator)
+        raw = self.backbone.synthesis(ws, noise_mode=noise_mode, generator=generator, fp16=self.fp16(ws))
         n, _, h, w = raw.shape
         if self.kind == "eg3d":
             return raw.view(n, 3, 32, h, w)
@@ -209,7 +218,7 @@ class TriPlaneGenerator(nn.Module):
         wb = ws[:, :bcg.num_ws]
         if wb.size(1) < bcg.num_ws:
             wb = torch.cat([wb, wb[:, -1:].repeat(1, bcg.num_ws - wb.size(1), 1)], 1)
-        return bcg(wb, noise_mode=noise_mode, generator=generator)
+        return bcg(wb, noise_mode=noise_mode, generator=generator, fp16=self.fp16(ws))
 
     # -- querying and rendering ---------------------------------------------------------------------
     def plane_features(self, planes, points):
@@ -229,6 +238,13 @@ class TriPlaneGenerator(nn.Module):
                 sigma = torch.where(crop_outside(points, box), torch.full_like(sigma, -1e3), sigma)
             return rgb, sigma
         return query
+
+    def content_box(self) -> tuple:
+        """Half extents (x, y, z), world units, of the box the planes cover (``box_warp``); PanoHead
+        and SphereHead also crop the density 0.1 inside it in x and z. Outside, the planes are
+        zero-padded and only the decoder's response to zero features (EG3D) remains."""
+        h = self.rendering_kwargs["box_warp"] / 2
+        return (h, h, h) if self.kind == "eg3d" else (h - TRIPLANE_CROP, h, h - TRIPLANE_CROP)
 
     def render_settings(self, deterministic: bool) -> RenderSettings:
         rk = self.rendering_kwargs
@@ -286,5 +302,5 @@ class TriPlaneGenerator(nn.Module):
         out["feature_image"] = feature_image
         out["image_raw"] = rgb
         out["image"] = self.superresolution(rgb, feature_image, ws, noise_mode=rk.get("superresolution_noise_mode", "none"),
-                                            generator=generator)
+                                            generator=generator, fp16=self.fp16(ws))
         return out

@@ -1,14 +1,17 @@
 """3D-GAN generators (EG3D, PanoHead, SphereHead) behind the generator interface.
 
 Per subject (once): z from the subject's seed, w = mapping(z, frontal conditioning) with
-truncation, the backbone's planes and (PanoHead/SphereHead) the background. Per batch of views:
-all rays of all views are rendered as one flat, chunked batch through the shared volume renderer
-at the checkpoint's neural rendering resolution, then ToRGB / super-resolution run per view.
+truncation, the backbone's planes and (PanoHead/SphereHead) the background. Per call, all rays of
+all views are marched in chunks and ToRGB / super-resolution run on batches of views; both sizes
+come from a memory budget (:func:`chunk_plan`), so one code path suits a 2-core CPU and a GPU.
 The ray range of each view moves with its camera radius. Images come out in [0, 1]; mask and
-depth are upsampled from the neural rendering resolution to the output size.
+depth are upsampled from the neural rendering resolution to the output size. Everything stays on
+the device until the views are returned; every random number is drawn on the CPU from the
+subject's seed, so a dataset does not depend on the device's random generator or the budget.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -17,18 +20,35 @@ import torch.nn.functional as F
 
 from ..cameras import (EG3D_FOCAL, EG3D_PIVOT, HEAD360_PIVOT, ViewSet, camera_position, conditioning_vector,
                        intrinsics, look_at, rays)
-from ..gans.checkpoint import read_checkpoint
+from ..device import resolve_device
+from ..errors import UserError
+from ..gans.checkpoint import LoadedCheckpoint, read_checkpoint
+from ..gans.triplane import PRECISIONS
 from ..render import render_rays_chunked
 from .base import STREAM_LATENT, STREAM_RENDER, Generator, RenderedViews, Subject, subject_rng
 
 BACKGROUNDS = ("own", "black", "white", "grey")
+# Working memory for one chunk of rays or one batch of super-resolved views, per device type.
+# CPU: small batches keep the activations in cache (measured in benchmarks/gan_speed.py);
+# CUDA: a quarter of the device's memory.
+CPU_BUDGET_MB = 64
+CUDA_BUDGET_FRACTION = 0.25
+# Ray chunks are whole multiples of this (measured: the decoder's matrix products then give the same
+# bits for every ray whatever the chunk size); super-resolution batches hold at least two views
+# (one view takes another convolution kernel, which changes the last bits).
+CHUNK_RAYS_QUANTUM = 1024
+MIN_SR_BATCH = 2
 
 
 @dataclass(frozen=True)
 class GANConfig:
     """truncation_cutoff None = all layers. background: 'own' (the GAN's own: EG3D black,
     PanoHead/SphereHead their generated background) or a solid colour composited with the mask.
-    save_planes: resolution at which the plane features are stored in fp16 (0 = not stored)."""
+    save_planes: resolution at which the plane features are stored in fp16 (0 = not stored).
+    precision: 'auto' (the originals' fp16 blocks in fp16 on CUDA, fp32 on CPU), 'fp32' or 'fp16'.
+    clip_rays: clip each ray's sample range to the generator's box and skip rays that miss it
+    (the originals march the whole range). memory_budget_mb: working memory that sets the chunk
+    and batch sizes (0 = the device's default)."""
 
     truncation_psi: float = 0.7
     truncation_cutoff: int | None = 14
@@ -37,7 +57,40 @@ class GANConfig:
     deterministic: bool = False
     noise_mode: str = "const"
     device: str = "auto"
-    chunk_rays: int = 1 << 14
+    precision: str = "auto"
+    clip_rays: bool = False
+    memory_budget_mb: float = 0
+
+
+# Fields that change how the work is split, not what is computed: not recorded with the data.
+NOT_RECORDED = ("device", "memory_budget_mb")
+
+
+@dataclass(frozen=True)
+class ChunkPlan:
+    """How one render call splits its work: rays per march chunk, views per super-resolution batch."""
+
+    rays: int
+    images: int
+
+
+def chunk_plan(G, budget_bytes: float, fp16: bool) -> ChunkPlan:
+    """Chunk sizes that keep the largest temporaries of each stage within ``budget_bytes``.
+
+    March: per sample, the sampled plane features (two spheres for SphereHead), their mean, the
+    decoder's hidden and output activations and the merge's sorted copies, float32. Super-
+    resolution: about five live activations of its largest block per view.
+    """
+    rk = G.rendering_kwargs
+    samples = rk["depth_resolution"] + rk["depth_resolution_importance"]
+    planes = 6 if G.kind == "spherehead" else 3
+    per_sample = 4 * (planes * 32 + 32 + 2 * 64 + 3 * 33)
+    rays = max(1, int(budget_bytes // (per_sample * samples * CHUNK_RAYS_QUANTUM))) * CHUNK_RAYS_QUANTUM
+    sr = G.superresolution
+    (ch0, ch1), res1 = sr.variant.channels, sr.variant.output_resolution
+    res0 = sr.input_resolution * (2 if sr.variant.block0_upsamples else 1)
+    per_image = 5 * max(ch0 * res0 ** 2, ch1 * res1 ** 2) * (2 if fp16 else 4)
+    return ChunkPlan(rays=rays, images=max(MIN_SR_BATCH, int(budget_bytes // per_image)))
 
 
 def _solid(background):
@@ -46,23 +99,38 @@ def _solid(background):
 
 
 class GANHeads(Generator):
-    def __init__(self, kind: str, checkpoint: str, config: GANConfig = GANConfig()):
+    """``checkpoint``: an official checkpoint file, or a :class:`LoadedCheckpoint` already in memory."""
+
+    def __init__(self, kind: str, checkpoint, config: GANConfig = GANConfig()):
+        if config.precision not in PRECISIONS:
+            raise UserError(f"precision {config.precision!r}: choose one of {', '.join(PRECISIONS)}")
+        if config.memory_budget_mb < 0:
+            raise UserError("the memory budget must be positive (or 0 for the device's default)")
         self.name = kind
         self.config = config
-        loaded = read_checkpoint(checkpoint, kind)
+        self.device = resolve_device(config.device)
+        loaded = checkpoint if isinstance(checkpoint, LoadedCheckpoint) else read_checkpoint(checkpoint, kind)
         self.checkpoint = loaded
-        if config.device == "auto":
-            self.device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
-        else:
-            self.device = torch.device(config.device)
         self.G = loaded.generator.to(self.device)
+        self.G.precision = config.precision
+        self.fp16 = self.G.fp16(torch.empty(0, device=self.device))
+        self.plan = chunk_plan(self.G, self.budget_bytes(), self.fp16)
         self.pivot = EG3D_PIVOT if kind == "eg3d" else HEAD360_PIVOT
+
+    def budget_bytes(self) -> float:
+        if self.config.memory_budget_mb:
+            return self.config.memory_budget_mb * 2 ** 20
+        if self.device.type == "cuda":
+            return CUDA_BUDGET_FRACTION * torch.cuda.get_device_properties(self.device).total_memory
+        return CPU_BUDGET_MB * 2 ** 20
 
     def describe(self) -> dict:
         ck = self.checkpoint
-        cfg = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self.config).items() if k != "device"}
+        cfg = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self.config).items()
+               if k not in NOT_RECORDED}
         cfg.update(neural_rendering_resolution=ck.neural_rendering_resolution, image_resolution=self.G.img_resolution,
-                   ray_start=ck.rendering_kwargs["ray_start"], ray_end=ck.rendering_kwargs["ray_end"])
+                   ray_start=ck.rendering_kwargs["ray_start"], ray_end=ck.rendering_kwargs["ray_end"],
+                   precision="fp16" if self.fp16 else "fp32")
         if cfg["background"] != "own":
             cfg["background"] = list(_solid(self.config.background))
         return {"name": self.name, "checkpoint": ck.path.rsplit("/", 1)[-1], "checkpoint_sha256": ck.sha256,
@@ -79,8 +147,9 @@ class GANHeads(Generator):
         cfg = self.config
         rng = subject_rng(dataset_seed, index, STREAM_LATENT)
         z = rng.standard_normal(self.G.z_dim).astype(np.float32)
-        gen = torch.Generator(device=self.device).manual_seed(int(rng.integers(2 ** 62)))
-        ws = self.G.mapping(torch.from_numpy(z)[None].to(self.device), self.conditioning().to(self.device),
+        gen = torch.Generator().manual_seed(int(rng.integers(2 ** 62)))
+        c = self.conditioning()
+        ws = self.G.mapping(torch.from_numpy(z)[None].to(self.device), c.to(self.device),
                             cfg.truncation_psi, cfg.truncation_cutoff)
         planes = self.G.planes(ws, cfg.noise_mode, gen)
         background = self.G.background(ws, cfg.noise_mode, gen) if self.name != "eg3d" else None
@@ -88,8 +157,7 @@ class GANHeads(Generator):
         if cfg.save_planes:
             arrays["planes"] = self._planes_fp16(planes, cfg.save_planes)
         latent = {"truncation_psi": cfg.truncation_psi, "truncation_cutoff": cfg.truncation_cutoff,
-                  "noise_mode": cfg.noise_mode, "conditioning": self.conditioning()[0].tolist(),
-                  "arrays": sorted(arrays)}
+                  "noise_mode": cfg.noise_mode, "conditioning": c[0].tolist(), "arrays": sorted(arrays)}
         return Subject(index=index, seed=dataset_seed, latent=latent, state=(ws, planes, background), arrays=arrays)
 
     @staticmethod
@@ -102,32 +170,45 @@ class GANHeads(Generator):
 
     @torch.no_grad()
     def render(self, subject: Subject, views: ViewSet, resolution: int) -> RenderedViews:
-        cfg = self.config
+        cfg, plan, dev = self.config, self.plan, self.device
         ws, planes, background = subject.state
         G, rk = self.G, self.checkpoint.rendering_kwargs
         nrr = self.checkpoint.neural_rendering_resolution
-        gen = torch.Generator(device=self.device).manual_seed(
-            int(subject_rng(subject.seed, subject.index, STREAM_RENDER).integers(2 ** 62)))
-        origins, dirs = rays(views.cam2world, views.K, nrr)
+        gen = torch.Generator().manual_seed(int(subject_rng(subject.seed, subject.index, STREAM_RENDER).integers(2 ** 62)))
+        origins, dirs = rays(torch.tensor(views.cam2world, dtype=torch.float32, device=dev), views.K, nrr)
         V, R = origins.shape[:2]
-        shift = torch.tensor(views.radius - rk.get("avg_camera_radius", 2.7), dtype=torch.float32)
-        start = (rk["ray_start"] + shift).repeat_interleave(R).to(self.device)
-        end = (rk["ray_end"] + shift).repeat_interleave(R).to(self.device)
-        settings = G.render_settings(cfg.deterministic)
-        settings = type(settings)(**{**asdict(settings), "chunk_rays": cfg.chunk_rays})
-        feats, depth, weights = render_rays_chunked(G.field(planes), origins.reshape(-1, 3).to(self.device),
-                                                    dirs.reshape(-1, 3).to(self.device), start, end, settings, gen)
-        out = G.compose(ws, feats, depth[:, None], weights[:, None], nrr, background, cfg.noise_mode, gen)
-        rgb = ((out["image"].clamp(-1, 1) + 1) / 2).float()
-        alpha = weights.reshape(V, 1, nrr, nrr).clamp(0, 1)
-        depth = out["image_depth"]
-        rgb, alpha, depth = _resize(rgb, resolution), _resize(alpha, resolution), _resize_depth(depth, alpha, resolution)
+        shift = torch.tensor(views.radius - rk.get("avg_camera_radius", 2.7), dtype=torch.float32, device=dev)
+        start = (rk["ray_start"] + shift).repeat_interleave(R)
+        end = (rk["ray_end"] + shift).repeat_interleave(R)
+        settings = dataclasses.replace(G.render_settings(cfg.deterministic), chunk_rays=plan.rays)
+        feats, depth, weights = render_rays_chunked(G.field(planes), origins.reshape(-1, 3), dirs.reshape(-1, 3),
+                                                    start, end, settings, gen,
+                                                    box=G.content_box() if cfg.clip_rays else None)
+        out_rgb, out_alpha, out_depth = [], [], []
         solid = _solid(cfg.background)
-        if solid is not None:
-            bg = torch.tensor(solid, dtype=rgb.dtype, device=rgb.device).view(1, 3, 1, 1)
-            rgb = rgb * alpha + bg * (1 - alpha)
-        return RenderedViews(rgb=rgb.permute(0, 2, 3, 1).cpu().numpy(), alpha=alpha[:, 0].cpu().numpy(),
-                             depth=depth[:, 0].cpu().numpy())
+        for first, last in sr_batches(V, plan.images):
+            sl = slice(first * R, last * R)
+            out = G.compose(ws, feats[sl], depth[sl, None], weights[sl, None], nrr, background, cfg.noise_mode, gen)
+            rgb = ((out["image"].clamp(-1, 1) + 1) / 2).float()
+            alpha = weights[sl].reshape(-1, 1, nrr, nrr).clamp(0, 1)
+            z = _resize_depth(out["image_depth"], alpha, resolution)
+            rgb, alpha = _resize(rgb, resolution), _resize(alpha, resolution)
+            if solid is not None:
+                bg = torch.tensor(solid, dtype=rgb.dtype, device=dev).view(1, 3, 1, 1)
+                rgb = rgb * alpha + bg * (1 - alpha)
+            out_rgb.append(rgb.permute(0, 2, 3, 1))
+            out_alpha.append(alpha[:, 0])
+            out_depth.append(z[:, 0])
+        return RenderedViews(rgb=torch.cat(out_rgb).cpu().numpy(), alpha=torch.cat(out_alpha).cpu().numpy(),
+                             depth=torch.cat(out_depth).cpu().numpy())
+
+
+def sr_batches(n_views: int, size: int) -> list:
+    """(first, last) view ranges of at most ``size`` views; a lone last view joins the batch before it."""
+    bounds = list(range(0, n_views, size)) + [n_views]
+    if len(bounds) > 2 and bounds[-1] - bounds[-2] < MIN_SR_BATCH:
+        del bounds[-2]
+    return list(zip(bounds[:-1], bounds[1:]))
 
 
 def _resize(x: torch.Tensor, res: int) -> torch.Tensor:
