@@ -24,7 +24,8 @@ from pathlib import Path
 import torch
 
 from datagen.pipeline import JobSpec, make_index, run_sample, software_info
-from datagen.shards import INDEX_NAME, ShardWriter, atomic_write, dumps, iter_tar_samples, read_index, subject_id
+from datagen.files import atomic_write  # noqa: E402
+from datagen.shards import INDEX_NAME, ShardWriter, dumps, iter_tar_samples, read_index, subject_id
 
 REPORTS = Path(__file__).resolve().parent / "reports"
 

@@ -39,7 +39,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.common import (HERE, REPORTS, machine_info, peak_rss_since_reset_mb, pyplot,  # noqa: E402
                                reset_peak_rss, run_child, table, write_report)
-from labeling_tool.manifest import read_manifest  # noqa: E402
+from datagen.manifests import read_manifest  # noqa: E402
 from panolam.config import preset  # noqa: E402
 from panolam.data import accepted_subjects, load_views  # noqa: E402
 from panolam.evaluate import evaluate  # noqa: E402

@@ -20,9 +20,10 @@ import torch
 from . import __version__
 from .cameras import PROTOCOLS, protocol_pivot, sample_views
 from .errors import UserError
+from .files import atomic_write
 from .generators import make_generator
 from .generators.base import STREAM_CAMERAS, subject_rng
-from .shards import (FORMAT, INDEX_NAME, ShardWriter, atomic_write, dumps, encode_subject, is_complete,
+from .shards import (FORMAT, INDEX_NAME, ShardWriter, dumps, encode_subject, is_complete,
                      read_index, remove_partial, shard_name, subject_id, view_name)
 
 DEPTH_MEANING = "distance along the unit ray from the camera centre, world units; 0 where alpha is 0"

@@ -31,11 +31,11 @@ import numpy as np
 from PIL import Image
 
 from .errors import DatasetError
+from .files import atomic_write, read_json, require, sha256_file
 
 FORMAT = "panolam-heads/1"
 INDEX_NAME = "index.json"
 TRUTH_DIR = "truth"
-SHA_CHUNK = 1 << 20
 
 
 def subject_id(index: int) -> str:
@@ -73,25 +73,6 @@ def truth_path(root, i) -> Path:
 def dumps(obj) -> bytes:
     """Canonical JSON bytes (sorted keys): identical objects give identical bytes."""
     return (json.dumps(obj, sort_keys=True, indent=1, allow_nan=False) + "\n").encode()
-
-
-def sha256_file(path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(SHA_CHUNK), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
-def atomic_write(path, data: bytes) -> None:
-    """Write bytes under a temporary name, fsync, rename: readers never see a partial file."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -261,16 +242,30 @@ def is_complete(root, index: int) -> bool:
 # Reading
 
 def read_index(root) -> dict:
+    """A dataset's index.json, its structure checked; a DatasetError naming the file and field otherwise."""
     path = Path(root) / INDEX_NAME
     if not path.exists():
         raise DatasetError(f"{path}: no dataset index here (is this a dataset folder made by 'datagen sample'?)")
-    try:
-        index = json.loads(path.read_text())
-    except ValueError as e:
-        raise DatasetError(f"{path}: the index is not valid JSON ({e})") from None
-    if index.get("format") != FORMAT:
-        raise DatasetError(f"{path}: unknown dataset format {index.get('format')!r}")
+    index = read_json(path, "dataset index", FORMAT)
+    for key, types in (("settings", dict), ("generator", dict), ("views_per_subject", int), ("num_subjects", int)):
+        require(index, key, types, path)
+    for i, shard in enumerate(require(index, "shards", list, path)):
+        where = f"shards[{i}]"
+        if not isinstance(shard, dict):
+            raise DatasetError(f"{path}: {where} must be an object")
+        name = require(shard, "name", str, path, where)
+        try:
+            shard_index(name)
+        except DatasetError:
+            raise DatasetError(f"{path}: {where}.name {name!r} is not a shard name (shard-NNNNNN)") from None
+        if not all(isinstance(s, str) for s in require(shard, "subjects", list, path, where)):
+            raise DatasetError(f"{path}: {where}.subjects must be a list of subject ids")
     return index
+
+
+def index_sha256(root) -> str:
+    """sha256 of a dataset's index.json: what ties a manifest or a pre-flags report to its dataset."""
+    return sha256_file(Path(root) / INDEX_NAME)
 
 
 @dataclass

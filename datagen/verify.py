@@ -1,13 +1,13 @@
 """``datagen verify``: checksums, decoding of every image, counts and the metadata schema."""
 from __future__ import annotations
 
-import hashlib
 from pathlib import Path
 
 import numpy as np
 
 from .errors import DatasetError
-from .shards import (TRUTH_DIR, decode_sample, iter_tar_samples, read_index, read_sidecar, sha256_file,
+from .files import sha256_file
+from .shards import (TRUTH_DIR, decode_sample, iter_tar_samples, read_index, read_sidecar,
                      tar_path, truth_path)
 
 SUBJECT_KEYS = ("format", "subject_id", "subject_index", "dataset_seed", "generator", "latent", "protocol",
@@ -59,7 +59,7 @@ def verify_shard(root, shard: dict, views: int, resolution: int) -> list[str]:
         problems.append(f"{tar}: sha256 differs from the sidecar (corrupted)")
     if "truth_sha256" in side:
         tp = truth_path(root, i)
-        if not tp.exists() or hashlib.sha256(tp.read_bytes()).hexdigest() != side["truth_sha256"]:
+        if not tp.exists() or sha256_file(tp) != side["truth_sha256"]:
             problems.append(f"{tp}: missing or its sha256 differs from the sidecar")
     if side.get("subjects") != shard["subjects"]:
         problems.append(f"{tar}: sidecar subjects differ from the dataset index")

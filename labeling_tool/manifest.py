@@ -1,31 +1,21 @@
-"""Curated manifests: all reviewers' verdicts merged under a stated policy, written once, never edited.
+"""Compiling curated manifests: all reviewers' verdicts merged under a stated policy, written once.
 
-A manifest is one JSON file (readable with ``json.load`` or ``pandas.json_normalize``)::
-
-    {"header": {"format", "version", "parent_version", "policy", "unreviewed", "test_count",
-                "counts", "conflicts", "reviewers", "dataset", "dataset_index_sha256",
-                "log_problems", "created"},
-     "subjects": [{"subject", "shard", "verdict", "reasons", "reviewers", "votes", "split"}, ...]}
-
-verdict: ``accepted`` / ``rejected``; split: ``train`` / ``test`` for accepted subjects (None for
-rejected). The test split is the ``test_count`` accepted subjects with the smallest
-sha256(subject id): deterministic, and independent of reviewing order. The version is the file's
-name without extension; a new review produces a new file (``--parent`` names the one it revises).
+The manifest format itself (fields, splits, versions) is described in ``datagen.manifests``.
 """
 from __future__ import annotations
 
 import hashlib
-import json
 import re
 from datetime import datetime, timezone
 from pathlib import Path
 
 from datagen.errors import UserError
-from datagen.shards import INDEX_NAME, atomic_write, dumps, read_index
+from datagen.files import atomic_write
+from datagen.manifests import FORMAT, read_manifest
+from datagen.shards import dumps, index_sha256, read_index
 
 from .events import read_logs, verdicts
 
-FORMAT = "panolam-manifest/1"
 POLICIES = ("any-bad", "majority")
 
 
@@ -126,32 +116,6 @@ def write_manifest(manifest: dict, out) -> Path:
     except OSError as e:
         raise UserError(f"cannot write {out}: {e.strerror}") from None
     return out
-
-
-def read_manifest(path) -> dict:
-    path = Path(path)
-    try:
-        m = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise UserError(f"{path}: no such manifest") from None
-    except ValueError as e:
-        raise UserError(f"{path}: not a valid manifest ({e})") from None
-    if not isinstance(m, dict) or m.get("header", {}).get("format") != FORMAT:
-        raise UserError(f"{path}: not a {FORMAT} manifest")
-    return m
-
-
-def index_sha256(dataset) -> str:
-    """sha256 of a dataset's index.json: what ties a manifest to its dataset."""
-    return hashlib.sha256((Path(dataset) / INDEX_NAME).read_bytes()).hexdigest()
-
-
-def check_dataset(manifest: dict, dataset, where="the manifest") -> None:
-    """UserError unless ``manifest`` was compiled for the dataset folder ``dataset`` (same index.json)."""
-    read_index(dataset)
-    if manifest["header"].get("dataset_index_sha256") != index_sha256(dataset):
-        raise UserError(f"{where} was compiled for another dataset than {dataset} (its index.json differs); "
-                        f"compile one for this dataset with 'label-tool compile {dataset} ...'")
 
 
 def next_version_path(manifests_dir, dataset) -> Path:

@@ -38,12 +38,10 @@ shards are complete). The hidden ``truth/`` folder is never opened.
 """
 from __future__ import annotations
 
-import hashlib
 import itertools
 import json
 import math
 import multiprocessing as mp
-import os
 import sys
 import time
 from dataclasses import dataclass
@@ -53,7 +51,8 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from datagen.errors import DatasetError
-from datagen.shards import INDEX_NAME, SubjectSample, decode_exr, decode_png, iter_tar_samples, read_index, view_name
+from datagen.files import atomic_write, read_json
+from datagen.shards import SubjectSample, index_sha256, decode_exr, decode_png, iter_tar_samples, read_index, view_name
 
 FORMAT = "panolam-preflags/1"
 PREFLAGS_NAME = "preflags.json"
@@ -620,7 +619,7 @@ def extract_features(root, progress: bool = False, workers: int = 1, params: Par
     "seconds"}. Reads index.json and complete shards only."""
     root = Path(root)
     index = read_index(root)
-    index_sha = hashlib.sha256((root / INDEX_NAME).read_bytes()).hexdigest()
+    index_sha = index_sha256(root)
     shards, missing = _complete_shards(root, index)
     total = sum(len(s["subjects"]) for s in index.get("shards", []) if s["name"] not in missing)
 
@@ -932,38 +931,20 @@ def write_preflags(root, report: dict, path=None) -> Path:
     if report.get("format") != FORMAT:
         raise ValueError(f"not a pre-flags report (format {report.get('format')!r})")
     path = Path(path) if path is not None else Path(root) / PREFLAGS_NAME
-    data = _canonical(report)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        with open(tmp, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
+    return atomic_write(path, _canonical(report))
 
 
 def read_preflags(root, path=None) -> dict:
     """Read ``<root>/preflags.json`` (or ``path``); errors name the file."""
     path = Path(path) if path is not None else Path(root) / PREFLAGS_NAME
-    try:
-        report = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: no pre-flags here (run the pre-flag scoring first)") from None
-    except ValueError as e:
-        raise DatasetError(f"{path}: not valid JSON ({e})") from None
-    if report.get("format") != FORMAT:
-        raise DatasetError(f"{path}: unknown pre-flags format {report.get('format')!r}")
-    return report
+    if not path.exists():
+        raise DatasetError(f"{path}: no pre-flags here (run the pre-flag scoring first)")
+    return read_json(path, "pre-flags report", FORMAT)
 
 
 def is_stale(root, report: dict) -> bool:
     """True when the dataset's index.json changed since the report was made."""
-    current = hashlib.sha256((Path(root) / INDEX_NAME).read_bytes()).hexdigest()
-    return current != report.get("dataset_index_sha256")
+    return index_sha256(root) != report.get("dataset_index_sha256")
 
 
 # ----------------------------------------------------------------------------------------------

@@ -281,7 +281,7 @@ def cmd_infer(args) -> int:
 
 # -- eval -------------------------------------------------------------------------------------------------------
 def cmd_eval(args) -> int:
-    from labeling_tool.manifest import read_manifest
+    from datagen.manifests import read_manifest
     from .data import accepted_subjects
     from .evaluate import evaluate, write_report
     from .train import model_from_checkpoint, read_checkpoint

@@ -25,7 +25,7 @@ import torch.nn.functional as F
 
 from datagen.errors import UserError
 from datagen.shards import decode_sample, read_fields, shard_index
-from labeling_tool.manifest import check_dataset, read_manifest
+from datagen.manifests import check_dataset, read_manifest
 
 BACKGROUND = (1.0, 1.0, 1.0)
 SPHEREHEAD_PLANES_NDIM = 5  # (2, D, C, R, R); EG3D's and PanoHead's are (3, C, R, R)

@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from datagen.shards import atomic_write, read_fields
+from datagen.files import atomic_write
+from datagen.shards import read_fields, to_uint8
 
 from .data import BACKGROUND, accepted_subjects, decode_views, view_yaws
 from .metrics import psnr, ssim
@@ -90,7 +91,7 @@ def evaluate(model: PanoLAM, data, manifest: dict, split: str = "test", resoluti
             row = {"subject": key, "view": name, "psnr": float(p[j]), "ssim": float(s[j]),
                    "lpips": None if lp is None else float(lp[j])}
             if faces is not None:
-                a, b = _uint8(pred[j]), _uint8(images[j])
+                a, b = (to_uint8(t.permute(1, 2, 0).cpu().numpy()) for t in (pred[j], images[j]))
                 row["csim"] = faces.csim(a, b, box_from_b=True) if name == "front" else None
                 if name == "front":
                     front_targets.append(b)
@@ -107,10 +108,6 @@ def evaluate(model: PanoLAM, data, manifest: dict, split: str = "test", resoluti
 def _sync(device):
     if device.type == "cuda":
         torch.cuda.synchronize()
-
-
-def _uint8(x: torch.Tensor) -> np.ndarray:
-    return (x.permute(1, 2, 0).cpu().numpy() * 255 + 0.5).astype(np.uint8)
 
 
 def summarize(rows: list, skipped: list, rec_times: list, render_times: list) -> dict:

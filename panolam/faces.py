@@ -38,6 +38,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from datagen.errors import UserError
+from datagen.shards import to_uint8
 
 # EG3D framing of the 5-point mean face (module docstring), in template units.
 CROP_SIDE = 700 / 300
@@ -165,15 +166,11 @@ def _to_float_rgb(image) -> np.ndarray:
     return np.ascontiguousarray(np.broadcast_to(a, a.shape[:2] + (3,)), dtype=np.float32)
 
 
-def _to_uint8(rgb: np.ndarray) -> np.ndarray:
-    return np.ascontiguousarray(np.rint(rgb * 255).astype(np.uint8))
-
-
 def _rgb_u8(image) -> np.ndarray:
     a = np.asarray(image)
     if a.dtype == np.uint8 and a.ndim == 3 and a.shape[2] == 3:
         return np.ascontiguousarray(a)
-    return _to_uint8(_to_float_rgb(a))
+    return to_uint8(_to_float_rgb(a))
 
 
 def _resize(u8: np.ndarray, k: float) -> np.ndarray:
@@ -319,7 +316,7 @@ def warp_quad(rgb: np.ndarray, quad: np.ndarray, out_size: int, pad="blur") -> n
 def crop_head(image, box: Box, out_size: int, scale: float = 1.0, pad="blur") -> np.ndarray:
     """EG3D-framed (out_size, out_size, 3) float32 head crop in [0, 1] of the face in ``box``."""
     rgb = _to_float_rgb(image)
-    return warp_quad(rgb, head_quad(landmarks(_to_uint8(rgb), box), scale), out_size, pad)
+    return warp_quad(rgb, head_quad(landmarks(to_uint8(rgb), box), scale), out_size, pad)
 
 
 def prepare_photo(src, out_size: int = 512, pick: str = "single", scale: float = 1.0, pad="blur",
@@ -334,7 +331,7 @@ def prepare_photo(src, out_size: int = 512, pick: str = "single", scale: float =
         raise ValueError(f"pick must be 'single' or 'largest', got {pick!r}")
     rgb, name = load_image(src)
     h, w = rgb.shape[:2]
-    u8 = _to_uint8(rgb)
+    u8 = to_uint8(rgb)
     faces = detect_faces(u8, max_side=max_side)
     if not faces:
         raise FaceError(f"no face found in {name} ({w}x{h} px): a face must be upright, roughly frontal "

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from datagen.shards import atomic_write
+from datagen.files import atomic_write
 
 SH_C0 = 0.28209479177387814
 PLY_PROPERTIES = ("x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",

@@ -19,7 +19,8 @@ from PIL import Image
 
 from datagen.cameras import FOV_MEAN, HEAD360_PIVOT, RADIUS_MEAN, ViewSet, named_views
 from datagen.errors import UserError
-from datagen.shards import atomic_write
+from datagen.files import atomic_write
+from datagen.shards import to_uint8
 
 from .data import BACKGROUND
 from .gaussians import Gaussians, ply_bytes
@@ -87,8 +88,9 @@ def _encoded(image: Image.Image, **options) -> bytes:
     return buf.getvalue()
 
 
-def to_uint8(images: torch.Tensor) -> list[np.ndarray]:
-    return [(x.permute(1, 2, 0).cpu().numpy() * 255 + 0.5).astype(np.uint8) for x in images]
+def frames_uint8(images: torch.Tensor) -> list[np.ndarray]:
+    """(N, 3, H, W) in [0, 1] -> N uint8 (H, W, 3) frames."""
+    return [to_uint8(x.permute(1, 2, 0).cpu().numpy()) for x in images]
 
 
 TURNTABLE_FORMATS = (".mp4", ".gif")
@@ -141,10 +143,10 @@ def run(model: PanoLAM, image: np.ndarray, out_ply: Path | None, turntable: Path
     if out_ply is not None:
         outputs[out_ply] = ply_bytes(kept.detach().to("cpu"))
     if turntable is not None:
-        outputs[turntable] = encode_turntable(turntable.suffix, to_uint8(frames_kept))
+        outputs[turntable] = encode_turntable(turntable.suffix, frames_uint8(frames_kept))
     if views_dir is not None:
         named = ["front", "left", "back", "right"]
-        for name, img in zip(named, to_uint8(render_set(kept, named_views(named), resolution))):
+        for name, img in zip(named, frames_uint8(render_set(kept, named_views(named), resolution))):
             outputs[views_dir / f"{name}.png"] = _encoded(Image.fromarray(img), format="PNG")
     for path, data in outputs.items():
         path.parent.mkdir(parents=True, exist_ok=True)

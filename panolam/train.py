@@ -21,9 +21,7 @@ torch.distributed (gloo on CPU, nccl on CUDA); each takes its own slice of every
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import math
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,7 +32,8 @@ import torch.distributed as dist
 import torch.nn.functional as F
 
 from datagen.errors import UserError
-from labeling_tool.manifest import read_manifest
+from datagen.files import atomic_write, sha256_file
+from datagen.manifests import read_manifest
 
 from .config import PATH_FIELDS, ModelConfig
 from .data import BACKGROUND, TrainingSamples, Views, collate, resized
@@ -172,11 +171,7 @@ def save_checkpoint(out: Path, model, optimizer, scheduler, step: int, model_cfg
              "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
              "rng": torch.get_rng_state(), "model_config": model_cfg.to_dict(), "train_config": cfg.to_dict(),
              "history": history[-HISTORY_KEPT:], "data": data or {}}
-    path = out / CHECKPOINT
-    tmp = path.with_name(f".{path.name}.tmp")
-    torch.save(state, tmp)
-    os.replace(tmp, path)
-    return path
+    return atomic_write(out / CHECKPOINT, lambda f: torch.save(state, f))
 
 
 def read_checkpoint(path) -> dict:
@@ -199,7 +194,7 @@ def training_data(dataset: TrainingSamples, manifest) -> dict:
     """The identity of a run's training data: manifest and dataset hashes, the training subjects."""
     m = read_manifest(manifest)
     return {"manifest": str(manifest), "manifest_version": m["header"].get("version"),
-            "manifest_sha256": hashlib.sha256(Path(manifest).read_bytes()).hexdigest(),
+            "manifest_sha256": sha256_file(manifest),
             "dataset_index_sha256": m["header"].get("dataset_index_sha256"),
             "subjects": [key for key, _ in dataset.subjects]}
 

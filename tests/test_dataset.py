@@ -117,7 +117,7 @@ def test_verify_reports_a_truncated_shard(tiny_dataset, tmp_path):
     assert problems and str(tar) in problems[0]
     # Even with a sidecar rewritten to match, the truncated tar itself is reported as corrupt.
     side = json.loads(sidecar_path(ds, 0).read_text())
-    from datagen.shards import sha256_file
+    from datagen.files import sha256_file
 
     side.update(tar_bytes=tar.stat().st_size, tar_sha256=sha256_file(tar))
     sidecar_path(ds, 0).write_text(json.dumps(side))

@@ -8,6 +8,7 @@ import pytest
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
+from datagen.shards import to_uint8
 from panolam import faces
 from panolam.faces import (CENTRE_BELOW_EYES, CROP_SIDE, EYE_DISTANCE, EYE_TO_MOUTH, GENERIC_FACE,
                            FaceError, apd, crop_head, csim, detect_faces, head_pose, landmarks, load_image,
@@ -60,14 +61,14 @@ def test_crop_is_square_deterministic_and_eg3d_framed(photo):
     assert 0 <= crop.min() and crop.max() <= 1 and info["n_faces"] == 1 and info["upsampled"]
     assert np.array_equal(crop, crop_head(photo, info["box"], OUT))
     # landmarks found again in the crop: centre and size as head_quad builds them (to a few px)
-    mid, e2e, e2m = eye_mouth(landmarks(faces._to_uint8(crop), detect_faces(crop)[0]))
+    mid, e2e, e2m = eye_mouth(landmarks(to_uint8(crop), detect_faces(crop)[0]))
     centre = mid + CENTRE_BELOW_EYES * e2m
     assert np.allclose(centre, OUT / 2, atol=0.03 * OUT)
     size = CROP_SIDE * max(np.hypot(*e2e) / EYE_DISTANCE, np.hypot(*e2m) / EYE_TO_MOUTH)
     assert abs(size / OUT - 1) < 0.05
     assert 0.24 < np.hypot(*e2e) / OUT < 0.29 and 0.33 < mid[1] / OUT < 0.45  # EG3D: 0.266, 0.376
     wider, _ = prepare_photo(photo, OUT, scale=1.5)
-    assert np.hypot(*eye_mouth(landmarks(faces._to_uint8(wider), detect_faces(wider)[0]))[1]) < 0.75 * np.hypot(*e2e)
+    assert np.hypot(*eye_mouth(landmarks(to_uint8(wider), detect_faces(wider)[0]))[1]) < 0.75 * np.hypot(*e2e)
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,8 @@ pv = pytest.importorskip("pyvista", reason="the review GUI needs pyvista")
 from labeling_tool.cli import build_queue, main as label_main  # noqa: E402
 from labeling_tool.events import EventLog, read_log, read_logs, verdicts  # noqa: E402
 from labeling_tool.gui import ReviewApp  # noqa: E402
-from labeling_tool.manifest import compile_manifest, read_manifest, subject_hash  # noqa: E402
+from datagen.manifests import read_manifest  # noqa: E402
+from labeling_tool.manifest import compile_manifest, subject_hash  # noqa: E402
 from datagen.errors import UserError  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

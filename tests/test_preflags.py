@@ -316,7 +316,8 @@ def write_dataset(root: Path, samples, shard_size=8, truth=None):
             keys.append(s.key)
         w.commit()
         shards.append({"name": shard_name(i // shard_size), "subjects": keys})
-    index = {"format": DATASET_FORMAT, "num_subjects": len(samples), "shards": shards, "settings": {}}
+    index = {"format": DATASET_FORMAT, "num_subjects": len(samples), "shards": shards, "settings": {},
+             "generator": {"name": "synthetic"}, "views_per_subject": len(samples[0].rgb)}
     (root / "index.json").write_text(json.dumps(index, indent=1, sort_keys=True) + "\n")
     return root
 

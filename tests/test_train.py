@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from labeling_tool.manifest import compile_manifest, read_manifest, write_manifest
+from datagen.manifests import read_manifest
+from labeling_tool.manifest import compile_manifest, write_manifest
 from panolam import train as train_module
 from panolam.config import preset
 from panolam.data import TrainingSamples, collate

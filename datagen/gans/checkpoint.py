@@ -11,7 +11,6 @@ the file's parameter for parameter.
 from __future__ import annotations
 
 import collections
-import hashlib
 import io
 import pickle
 from dataclasses import dataclass
@@ -21,6 +20,7 @@ import numpy as np
 import torch
 
 from ..errors import UserError
+from ..files import sha256_file
 from .triplane import TriPlaneGenerator
 
 OFFICIAL_SOURCES = {
@@ -160,14 +160,6 @@ class LoadedCheckpoint:
     path: str
 
 
-def sha256_of(path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def read_checkpoint(path, expected_kind: str | None = None) -> LoadedCheckpoint:
     """Load ``G_ema`` from an official checkpoint into our modules (CPU, eval mode, float32)."""
     path = Path(path)
@@ -213,7 +205,7 @@ def read_checkpoint(path, expected_kind: str | None = None) -> LoadedCheckpoint:
     model.neural_rendering_resolution = int(g.state.get("neural_rendering_resolution", 64))
     model.eval().requires_grad_(False)
     return LoadedCheckpoint(kind, model, init_kwargs, rendering_kwargs, model.neural_rendering_resolution,
-                            sha256_of(path), str(path))
+                            sha256_file(path), str(path))
 
 
 def _plain(obj):

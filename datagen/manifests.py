@@ -1,0 +1,56 @@
+"""Curated manifests, the format every package shares: which subjects of a dataset are accepted.
+
+A manifest is one JSON file (readable with ``json.load`` or ``pandas.json_normalize``)::
+
+    {"header": {"format", "version", "parent_version", "policy", "unreviewed", "test_count",
+                "counts", "conflicts", "reviewers", "dataset", "dataset_index_sha256",
+                "log_problems", "created"},
+     "subjects": [{"subject", "shard", "verdict", "reasons", "reviewers", "votes", "split"}, ...]}
+
+verdict: ``accepted`` / ``rejected``; split: ``train`` / ``test`` for accepted subjects (None for
+rejected). The test split is the ``test_count`` accepted subjects with the smallest
+sha256(subject id): deterministic, and independent of reviewing order. The version is the file's
+name without extension; a new review produces a new file (``parent_version`` names the one it
+revises); a published manifest is never edited. ``dataset_index_sha256`` ties a manifest to the
+dataset it was compiled for. ``label-tool compile`` writes them; training and evaluation read them.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from .errors import DatasetError, UserError
+from .files import read_json, require
+from .shards import index_sha256, read_index
+
+FORMAT = "panolam-manifest/1"
+VERDICTS = ("accepted", "rejected")
+SPLITS = ("train", "test", None)
+
+
+def read_manifest(path) -> dict:
+    """A manifest, its structure checked; a UserError naming the file and the field otherwise."""
+    path = Path(path)
+    try:
+        m = read_json(path, "manifest", FORMAT)
+        require(m, "header", dict, path)
+        for i, row in enumerate(require(m, "subjects", list, path)):
+            where = f"subjects[{i}]"
+            if not isinstance(row, dict):
+                raise DatasetError(f"{path}: {where} must be an object")
+            require(row, "subject", str, path, where)
+            require(row, "shard", str, path, where)
+            if row.get("verdict") not in VERDICTS:
+                raise DatasetError(f"{path}: {where}.verdict must be accepted or rejected, not {row.get('verdict')!r}")
+            if row.get("split") not in SPLITS:
+                raise DatasetError(f"{path}: {where}.split must be train, test or null, not {row.get('split')!r}")
+    except DatasetError as e:
+        raise UserError(str(e)) from None
+    return m
+
+
+def check_dataset(manifest: dict, dataset, where="the manifest") -> None:
+    """UserError unless ``manifest`` was compiled for the dataset folder ``dataset`` (same index.json)."""
+    read_index(dataset)
+    if manifest["header"].get("dataset_index_sha256") != index_sha256(dataset):
+        raise UserError(f"{where} was compiled for another dataset than {dataset} (its index.json differs); "
+                        f"compile one for this dataset with 'label-tool compile {dataset} ...'")
