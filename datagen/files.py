@@ -5,13 +5,16 @@ and training checkpoints alike.
 """
 from __future__ import annotations
 
+import errno
+import fcntl
 import hashlib
 import json
 import os
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, Union
 
-from .errors import DatasetError
+from .errors import DatasetError, UserError
 
 SHA_CHUNK = 1 << 20
 
@@ -85,6 +88,34 @@ def require(doc: dict, key: str, types, path, where: str = "") -> object:
         expected = " or ".join(t.__name__ for t in _tuple(types))
         raise DatasetError(f"{path}: field {name!r} must be {expected}, not {type(value).__name__}")
     return value
+
+
+class LockBusy(Exception):
+    """The lock is held by another process."""
+
+
+@contextmanager
+def byte_lock(path, offset: int, blocking: bool = True):
+    """Hold an exclusive POSIX record lock (``fcntl.lockf``) on one byte of ``path`` for the block.
+
+    One lock file serves many independent locks (one byte each). POSIX locks work across the
+    machines of a cluster where the shared filesystem supports them (NFS with its lock daemon,
+    Lustre, GPFS); where it does not, a UserError says so. Locks end with the process, so a
+    killed run never leaves one behind. Non-blocking: LockBusy when another process holds it.
+    """
+    path = Path(path)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.lockf(fd, fcntl.LOCK_EX | (0 if blocking else fcntl.LOCK_NB), 1, offset, os.SEEK_SET)
+        except OSError as e:
+            if e.errno in (errno.EAGAIN, errno.EACCES):
+                raise LockBusy(str(path)) from None
+            raise UserError(f"cannot lock {path}: {e.strerror}; this filesystem does not support POSIX file locks, "
+                            "so concurrent runs into one folder cannot be kept apart (use one folder per run)") from None
+        yield
+    finally:
+        os.close(fd)
 
 
 def _tuple(types) -> tuple:

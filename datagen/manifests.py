@@ -30,6 +30,8 @@ SPLITS = ("train", "test", None)
 def read_manifest(path) -> dict:
     """A manifest, its structure checked; a UserError naming the file and the field otherwise."""
     path = Path(path)
+    if not path.exists():
+        raise UserError(f"{path}: no such manifest")
     try:
         m = read_json(path, "manifest", FORMAT)
         require(m, "header", dict, path)

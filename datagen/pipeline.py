@@ -20,11 +20,11 @@ import torch
 from . import __version__
 from .cameras import PROTOCOLS, protocol_pivot, sample_views
 from .errors import UserError
-from .files import atomic_write
+from .files import LockBusy, atomic_write, byte_lock
 from .generators import make_generator
 from .generators.base import STREAM_CAMERAS, subject_rng
 from .shards import (FORMAT, INDEX_NAME, ShardWriter, dumps, encode_subject, is_complete,
-                     read_index, remove_partial, shard_name, subject_id, view_name)
+                     read_index, remove_partial, shard_name, subject_id, tar_path, view_name)
 
 DEPTH_MEANING = "distance along the unit ray from the camera centre, world units; 0 where alpha is 0"
 CAMERA_CONVENTION = ("OpenCV cam2world (x right, y down, z forward); intrinsics normalized by image size; "
@@ -106,6 +106,8 @@ def make_index(spec: JobSpec, generator_description: dict) -> dict:
 # ----------------------------------------------------------------------------------------------
 # The shard task
 
+LOCK_NAME = ".datagen.lock"  # byte 0: the index; byte 1 + s: shard s
+
 _GENERATORS: dict = {}
 
 
@@ -149,7 +151,20 @@ def render_subject(spec: JobSpec, index: int):
 
 
 def write_shard(spec: JobSpec, shard: int, progress=None) -> dict:
-    """Render and publish one shard; ``progress(n_images)`` is called after each subject."""
+    """Render and publish one shard; ``progress(n_images)`` is called after each subject.
+
+    Holds the shard's lock while it works, so a second run into the same folder can neither write
+    the same shard nor remove this run's temporary files.
+    """
+    try:
+        with byte_lock(Path(spec.out) / LOCK_NAME, 1 + shard, blocking=False):
+            return _write_shard(spec, shard, progress)
+    except LockBusy:
+        raise UserError(f"{tar_path(spec.out, shard)} is being written by another datagen run into {spec.out}; "
+                        "wait for it, or give each job its own --shard-index") from None
+
+
+def _write_shard(spec: JobSpec, shard: int, progress) -> dict:
     remove_partial(spec.out, shard)
     writer = ShardWriter(spec.out, shard)
     try:
@@ -309,28 +324,37 @@ def _progress_bar(total: int, enabled: bool):
 
 
 def prepare_output(spec: JobSpec, index: dict) -> None:
-    """Create the output folder and publish the index; refuse a folder holding another dataset."""
+    """Create the output folder and publish the index; refuse a folder holding another dataset.
+
+    The check and the write happen under the folder's index lock, so of two runs with different
+    settings started together exactly one proceeds.
+    """
     out = Path(spec.out)
     try:
         out.mkdir(parents=True, exist_ok=True)
-        if (out / INDEX_NAME).exists():
-            # Another job of the same dataset may have written the index; the software version
-            # may differ (each subject records its own), nothing else may.
-            existing = read_index(out)
-            differing = sorted(k for k in index["settings"]
-                               if k != "software" and existing["settings"].get(k) != index["settings"][k])
-            if differing or existing["generator"] != index["generator"]:
-                what = ", ".join(differing) or "generator configuration"
-                raise UserError(f"{out} already holds a dataset made with other settings ({what}); "
-                                "choose another --out")
-            return
-        atomic_write(out / INDEX_NAME, dumps(index))
+        with byte_lock(out / LOCK_NAME, 0):
+            _publish_index(out, index)
     except PermissionError:
         raise UserError(f"cannot write to {out}: permission denied") from None
     except OSError as e:
         if e.errno == errno.ENOSPC:
             raise UserError(f"disk full while writing to {out}") from None
         raise UserError(f"cannot write to {out}: {e.strerror}") from None
+
+
+def _publish_index(out: Path, index: dict) -> None:
+    if (out / INDEX_NAME).exists():
+        # Another job of the same dataset may have written the index; the software version
+        # may differ (each subject records its own), nothing else may.
+        existing = read_index(out)
+        differing = sorted(k for k in index["settings"]
+                           if k != "software" and existing["settings"].get(k) != index["settings"][k])
+        if differing or existing["generator"] != index["generator"]:
+            what = ", ".join(differing) or "generator configuration"
+            raise UserError(f"{out} already holds a dataset made with other settings ({what}); "
+                            "choose another --out")
+        return
+    atomic_write(out / INDEX_NAME, dumps(index))
 
 
 def run_sample(spec: JobSpec, *, workers: int = 1, backend: str = "local", ray_address: str | None = None,

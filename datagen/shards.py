@@ -222,13 +222,29 @@ def remove_partial(root, index: int) -> None:
         truth_path(root, index).unlink(missing_ok=True)
 
 
-def read_sidecar(root, index: int) -> dict | None:
-    """The shard's sidecar, or None when the shard is not complete (no sidecar, or it is unreadable)."""
+def read_sidecar(root, index: int, strict: bool = False) -> dict | None:
+    """The shard's sidecar, or None when the shard is not complete (no sidecar, or it is unreadable).
+
+    ``strict``: a sidecar that exists but cannot be read, is not JSON, or lacks its fields raises a
+    DatasetError saying so (None still means there is none).
+    """
     path = sidecar_path(root, index)
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
+    if not path.exists():
         return None
+    try:
+        side = read_json(path, "shard sidecar", FORMAT)
+        require(side, "tar_bytes", int, path)
+        require(side, "tar_sha256", str, path)
+        require(side, "subjects", list, path)
+        for key, span in require(side, "offsets", dict, path).items():
+            if not (isinstance(span, list) and len(span) == 2 and all(isinstance(v, int) for v in span)
+                    and 0 <= span[0] < span[1]):
+                raise DatasetError(f"{path}: byte range of {key} is {span!r}, not [start, end)")
+    except DatasetError:
+        if strict:
+            raise
+        return None
+    return side
 
 
 def is_complete(root, index: int) -> bool:
@@ -321,8 +337,14 @@ def read_fields(root, shard: int, key: str) -> dict:
         with open(path, "rb") as f:
             f.seek(start)
             blob = f.read(end - start)
+        if len(blob) != end - start:
+            raise DatasetError(f"{path}: the byte range of {key} [{start}, {end}) runs past the end of the tar")
         with tarfile.open(fileobj=io.BytesIO(blob), mode="r:") as tar:
-            return {m.name.partition(".")[2]: tar.extractfile(m).read() for m in tar if m.isfile()}
+            members = [m for m in tar if m.isfile()]
+            others = sorted({m.name.partition(".")[0] for m in members} - {key})
+            if others or not members:
+                raise DatasetError(f"{path}: the byte range of {key} holds {others[:1] or 'no subject'}, not {key}")
+            return {m.name.partition(".")[2]: tar.extractfile(m).read() for m in members}
     except (tarfile.TarError, EOFError, OSError) as e:
         raise DatasetError(f"{path}: corrupt subject {key} ({e})") from None
 

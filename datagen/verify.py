@@ -1,14 +1,15 @@
 """``datagen verify``: checksums, decoding of every image, counts and the metadata schema."""
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 
 import numpy as np
 
 from .errors import DatasetError
 from .files import sha256_file
-from .shards import (TRUTH_DIR, decode_sample, iter_tar_samples, read_index, read_sidecar,
-                     tar_path, truth_path)
+from .shards import (TRUTH_DIR, decode_sample, iter_tar_samples, read_fields, read_index, read_sidecar,
+                     shard_index, sidecar_path, tar_path, truth_path)
 
 SUBJECT_KEYS = ("format", "subject_id", "subject_index", "dataset_seed", "generator", "latent", "protocol",
                 "pivot", "resolution", "views", "software", "depth", "camera_convention")
@@ -45,9 +46,12 @@ def check_metadata(meta: dict, views: int, resolution: int) -> list[str]:
 
 def verify_shard(root, shard: dict, views: int, resolution: int) -> list[str]:
     """Problems of one shard, each a line naming the file."""
-    i = int(shard["name"].split("-")[1])
+    i = shard_index(shard["name"])
     tar = tar_path(root, i)
-    side = read_sidecar(root, i)
+    try:
+        side = read_sidecar(root, i, strict=True)
+    except DatasetError as e:
+        return [f"{e} (the shard cannot be trusted; delete both files and rerun with --resume)"]
     if side is None:
         return [f"{tar}: incomplete (no sidecar {shard['name']}.json); rerun 'datagen sample ... --resume'"]
     if not tar.exists():
@@ -63,10 +67,11 @@ def verify_shard(root, shard: dict, views: int, resolution: int) -> list[str]:
             problems.append(f"{tp}: missing or its sha256 differs from the sidecar")
     if side.get("subjects") != shard["subjects"]:
         problems.append(f"{tar}: sidecar subjects differ from the dataset index")
-    seen = []
+    seen, digests = [], {}
     try:
         for key, fields in iter_tar_samples(tar):
             seen.append(key)
+            digests[key] = fields_digest(fields)
             expected_fields = 1 + 3 * views + sum(f.endswith(".npy") for f in fields)
             if len(fields) != expected_fields or not any(f == "json" for f in fields):
                 problems.append(f"{tar}: subject {key} has {len(fields)} fields, expected {expected_fields}")
@@ -85,6 +90,35 @@ def verify_shard(root, shard: dict, views: int, resolution: int) -> list[str]:
         problems.append(str(e))
     if not problems and seen != shard["subjects"]:
         problems.append(f"{tar}: holds subjects {seen[:3]}..., the index lists {shard['subjects'][:3]}...")
+    if not problems:
+        problems += check_byte_ranges(root, i, side, digests)
+    return problems
+
+
+def fields_digest(fields: dict) -> str:
+    """sha256 over a subject's field names and bytes, in order."""
+    h = hashlib.sha256()
+    for name, data in fields.items():
+        h.update(name.encode() + b"\0" + len(data).to_bytes(8, "little") + data)
+    return h.hexdigest()
+
+
+def check_byte_ranges(root, i: int, side: dict, digests: dict) -> list[str]:
+    """Each subject's byte range in the sidecar must read back as exactly that subject's fields."""
+    offsets = side["offsets"]
+    if sorted(offsets) != sorted(digests):
+        return [f"{sidecar_path(root, i)}: byte ranges are given for {len(offsets)} subjects, the tar holds "
+                f"{len(digests)}"]
+    problems = []
+    for key in digests:
+        try:
+            fields = read_fields(root, i, key)
+        except DatasetError as e:
+            problems.append(f"{e} (byte range {offsets[key]} in {sidecar_path(root, i).name})")
+            continue
+        if fields_digest(fields) != digests[key]:
+            problems.append(f"{sidecar_path(root, i)}: byte range {offsets[key]} of {key} does not read back as "
+                            f"that subject")
     return problems
 
 

@@ -1,11 +1,16 @@
-"""Shared test helpers: tiny dataset jobs and the location of the shared GAN fixtures."""
+"""Shared test helpers: tiny dataset jobs, the location of the shared GAN fixtures, and writers of
+official-format checkpoint pickles."""
 from __future__ import annotations
 
 import os
+import sys
+import types
+from collections import OrderedDict
 from pathlib import Path
 
 import pytest
 
+from datagen.gans.checkpoint import RestrictedUnpickler, Stub
 from datagen.pipeline import JobSpec, run_sample, software_info
 
 # ../shared beside the project root; override with PANOLAM_SHARED=/path/to/shared
@@ -48,3 +53,47 @@ def tiny_dataset(tmp_path_factory):
     out = tmp_path_factory.mktemp("tiny") / "ds"
     run_sample(tiny_spec(out), progress=False)
     return out
+
+
+# -- helpers that write official-format pickles ------------------------------------------------------
+
+@pytest.fixture
+def persistence_module(monkeypatch):
+    """A stand-in 'torch_utils.persistence' so tests can write pickles in the official format."""
+    pkg, mod = types.ModuleType("torch_utils"), types.ModuleType("torch_utils.persistence")
+
+    def _reconstruct_persistent_obj(meta):  # never called: only its name is pickled
+        raise AssertionError
+
+    _reconstruct_persistent_obj.__module__ = "torch_utils.persistence"
+    _reconstruct_persistent_obj.__qualname__ = "_reconstruct_persistent_obj"
+    mod._reconstruct_persistent_obj = _reconstruct_persistent_obj
+    pkg.persistence = mod
+    monkeypatch.setitem(sys.modules, "torch_utils", pkg)
+    monkeypatch.setitem(sys.modules, "torch_utils.persistence", mod)
+    return mod
+
+
+class Persistent:
+    def __init__(self, fn, class_name, state):
+        self.fn, self.meta = fn, {"type": "class", "version": 6, "module_src": "<omitted>",
+                                  "class_name": class_name, "state": state}
+
+    def __reduce__(self):
+        return (self.fn, (self.meta,))
+
+
+def repickle(stub, fn):
+    """A loaded stub tree -> an official-format object tree (every module persistent)."""
+    def conv(v):
+        if isinstance(v, Stub):
+            return repickle(v, fn)
+        if isinstance(v, dict):  # OrderedDicts stay ordered; our EasyDict stand-ins become plain dicts
+            return (OrderedDict if isinstance(v, OrderedDict) else dict)((k, conv(x)) for k, x in v.items())
+        return v
+    return Persistent(fn, stub.class_name.rsplit(".", 1)[-1], {k: conv(v) for k, v in stub.state.items()})
+
+
+def load_stub(path):
+    with open(path, "rb") as f:
+        return RestrictedUnpickler(f).load()["G_ema"]

@@ -125,6 +125,30 @@ def test_verify_reports_a_truncated_shard(tiny_dataset, tmp_path):
     assert any(str(tar) in p and ("truncated" in p or "fields" in p or "decode" in p) for p in problems)
 
 
+@pytest.mark.parametrize("change", ["shift", "swap", "past_the_end"])
+def test_verify_checks_every_byte_range_in_the_sidecar(tiny_dataset, tmp_path, change):
+    ds = copy_dataset(tiny_dataset, tmp_path / "ds")
+    path = sidecar_path(ds, 0)
+    side = json.loads(path.read_text())
+    a, b = list(side["offsets"])[:2]
+    if change == "shift":
+        side["offsets"][a][0] += 512
+    elif change == "swap":
+        side["offsets"][a], side["offsets"][b] = side["offsets"][b], side["offsets"][a]
+    else:
+        side["offsets"][b][1] = side["tar_bytes"] + 10_000
+    path.write_text(json.dumps(side))
+    problems = verify_dataset(ds)["problems"]
+    assert problems and any("byte range" in p and (a in p or b in p) for p in problems), problems
+
+
+def test_verify_tells_an_unreadable_sidecar_from_a_missing_one(tiny_dataset, tmp_path):
+    ds = copy_dataset(tiny_dataset, tmp_path / "ds")
+    sidecar_path(ds, 0).write_text("{broken")
+    problems = verify_dataset(ds)["problems"]
+    assert len(problems) == 1 and "not valid JSON" in problems[0] and str(sidecar_path(ds, 0)) in problems[0]
+
+
 def test_verify_reports_a_missing_sidecar(tiny_dataset, tmp_path):
     ds = copy_dataset(tiny_dataset, tmp_path / "ds")
     sidecar_path(ds, 1).unlink()
@@ -169,3 +193,60 @@ def test_resume_after_sigkill_loses_and_duplicates_nothing(tmp_path):
     clean = tmp_path / "clean"
     subprocess.run([a if a != str(out) else str(clean) for a in args], env=env, check=True, timeout=300)
     assert all_files(out) == all_files(clean)
+
+
+# -- two runs into one folder ------------------------------------------------------------------------
+
+SAMPLE = [sys.executable, "-m", "datagen.cli", "sample", "--subjects", "4", "--shard-size", "1", "--views", "3",
+          "--seed", "7", "--quiet"]
+ENV = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+
+
+def test_a_shard_in_progress_elsewhere_is_left_alone(tmp_path):
+    """Another run holds shard 0's lock: this run neither deletes its temporary tar nor writes the shard."""
+    from datagen.files import byte_lock
+    from datagen.pipeline import LOCK_NAME
+
+    out = tmp_path / "ds"
+    out.mkdir()
+    theirs = out / ".shard-000000.tar.tmp-99999"
+    theirs.write_bytes(b"half a shard")
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time; from datagen.files import byte_lock\n"
+        f"with byte_lock({str(out / LOCK_NAME)!r}, 1):\n    print('locked', flush=True); time.sleep(60)")],
+        env=ENV, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        done = subprocess.run(SAMPLE + ["--resolution", "32", "--out", str(out)], env=ENV, capture_output=True,
+                              text=True, timeout=300)
+        assert done.returncode == 2 and done.stderr.count("\n") == 1
+        assert "shard-000000.tar is being written by another datagen run" in done.stderr
+        assert theirs.read_bytes() == b"half a shard"
+    finally:
+        holder.kill()
+        holder.wait()
+    with byte_lock(out / LOCK_NAME, 1, blocking=False):  # released when its holder died
+        pass
+
+
+def test_two_runs_with_different_settings_started_together(tmp_path):
+    out = tmp_path / "ds"
+    procs = [subprocess.Popen(SAMPLE + ["--resolution", str(r), "--out", str(out)], env=ENV, stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for r in (32, 40)]
+    results = [(p.wait(timeout=300), p.stderr.read()) for p in procs]
+    assert sorted(rc for rc, _ in results) == [0, 2], results
+    assert "already holds a dataset made with other settings (resolution)" in next(e for rc, e in results if rc)
+    assert verify_dataset(out)["problems"] == []
+
+
+def test_split_array_jobs_run_concurrently_into_one_folder(tmp_path):
+    out = tmp_path / "ds"
+    procs = [subprocess.Popen(SAMPLE + ["--resolution", "32", "--out", str(out), "--shard-index", str(k),
+                                        "--num-shards", "2"], env=ENV, stderr=subprocess.PIPE, text=True)
+             for k in (0, 1)]
+    assert [p.wait(timeout=300) for p in procs] == [0, 0], [p.stderr.read() for p in procs]
+    report = verify_dataset(out)
+    assert report["problems"] == [] and report["subjects"] == 4
+    single = tmp_path / "single"
+    subprocess.run(SAMPLE + ["--resolution", "32", "--out", str(single)], env=ENV, check=True, timeout=300)
+    assert all_files(out) == all_files(single)

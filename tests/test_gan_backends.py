@@ -1,65 +1,18 @@
 """GAN checkpoints: refusing bad files, and writing datasets through `datagen sample`."""
 import os
 import pickle
-from collections import OrderedDict
-import sys
-import types
 
 import numpy as np
 import pytest
 import torch
 
 from datagen.cameras import named_views
-from datagen.gans.checkpoint import CheckpointError, RestrictedUnpickler, Stub, read_checkpoint
+from datagen.gans.checkpoint import CheckpointError, read_checkpoint
 from datagen.generators import make_generator
 from datagen.pipeline import run_sample
 from datagen.shards import read_subject
 from datagen.verify import verify_dataset
-from tests.conftest import all_files, gan_fixture, tiny_spec
-
-
-# -- helpers that write official-format pickles ------------------------------------------------------
-
-@pytest.fixture
-def persistence_module(monkeypatch):
-    """A stand-in 'torch_utils.persistence' so tests can write pickles in the official format."""
-    pkg, mod = types.ModuleType("torch_utils"), types.ModuleType("torch_utils.persistence")
-
-    def _reconstruct_persistent_obj(meta):  # never called: only its name is pickled
-        raise AssertionError
-
-    _reconstruct_persistent_obj.__module__ = "torch_utils.persistence"
-    _reconstruct_persistent_obj.__qualname__ = "_reconstruct_persistent_obj"
-    mod._reconstruct_persistent_obj = _reconstruct_persistent_obj
-    pkg.persistence = mod
-    monkeypatch.setitem(sys.modules, "torch_utils", pkg)
-    monkeypatch.setitem(sys.modules, "torch_utils.persistence", mod)
-    return mod
-
-
-class Persistent:
-    def __init__(self, fn, class_name, state):
-        self.fn, self.meta = fn, {"type": "class", "version": 6, "module_src": "<omitted>",
-                                  "class_name": class_name, "state": state}
-
-    def __reduce__(self):
-        return (self.fn, (self.meta,))
-
-
-def repickle(stub, fn):
-    """A loaded stub tree -> an official-format object tree (every module persistent)."""
-    def conv(v):
-        if isinstance(v, Stub):
-            return repickle(v, fn)
-        if isinstance(v, dict):  # OrderedDicts stay ordered; our EasyDict stand-ins become plain dicts
-            return (OrderedDict if isinstance(v, OrderedDict) else dict)((k, conv(x)) for k, x in v.items())
-        return v
-    return Persistent(fn, stub.class_name.rsplit(".", 1)[-1], {k: conv(v) for k, v in stub.state.items()})
-
-
-def load_stub(path):
-    with open(path, "rb") as f:
-        return RestrictedUnpickler(f).load()["G_ema"]
+from tests.conftest import all_files, gan_fixture, load_stub, repickle, tiny_spec
 
 
 # -- bad input ------------------------------------------------------------------------------------------
