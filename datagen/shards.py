@@ -7,6 +7,7 @@ A dataset folder holds::
     shard-000000.json          sidecar, written last: counts, sha256 of the tar and truth file, and
                                each subject's byte range [start, end) in the tar (random access)
     truth/shard-000000.json    ground truth reviewers must not see (e.g. injected defects)
+    .datagen.lock              empty; runs writing into the folder hold POSIX locks on its bytes
 
 Fields of a subject sample ``<id>``: ``<id>.json`` (metadata and provenance), and per view i
 ``<id>.vII.png`` (RGB, 8-bit), ``<id>.vII.mask.png`` (alpha, 8-bit), ``<id>.vII.depth.exr``

@@ -117,4 +117,4 @@ def test_disk_full_is_one_line_and_leaves_nothing_complete(tmp_path, capsys, mon
     code, _, err = run(["sample", "--out", str(out), "--subjects", "2", "--resolution", "16", "--views", "1",
                         "--quiet"], capsys)
     assert code == 2 and len(err.strip().splitlines()) == 1 and "disk full" in err and "--resume" in err
-    assert sorted(p.name for p in out.iterdir()) == ["index.json"]  # no shard, no temporary file left
+    assert sorted(p.name for p in out.iterdir()) == [".datagen.lock", "index.json"]  # no shard, no temporary
