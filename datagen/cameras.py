@@ -9,15 +9,18 @@ gives f = 4.2634; EG3D's scripts hard-code 4.2647).
 Angles: ``yaw`` in degrees, 0 = frontal camera on +z, 90 = camera on +x, 180 = back of the head.
 ``pitch`` in degrees is the camera's elevation above the horizontal plane (positive = camera above
 the head, looking down). Cameras sit on a sphere of the given radius around the origin and look at
-a pivot: EG3D (0, 0, 0.2), PanoHead/SphereHead (0, 0, 0).
+a pivot: EG3D (0, 0, 0.2), PanoHead/SphereHead (0, 0, 0). docs/conventions.md collects these.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
+
+if TYPE_CHECKING:
+    import torch
 
 EG3D_FOCAL_SCALE = 1.414
 EG3D_FOCAL = 4.2647  # the focal EG3D's scripts hard-code for FFHQ (normalized units)
@@ -59,7 +62,7 @@ def intrinsics(focal) -> np.ndarray:
 
 def pixel_intrinsics(K_norm, width: int, height: int):
     """Normalized intrinsics -> pixel intrinsics (works on numpy arrays and torch tensors)."""
-    scale = K_norm.new_tensor([width, height, 1.0]) if torch.is_tensor(K_norm) else np.array([width, height, 1.0])
+    scale = K_norm.new_tensor([width, height, 1.0]) if _is_tensor(K_norm) else np.array([width, height, 1.0])
     return K_norm * scale[..., :, None]
 
 
@@ -123,12 +126,17 @@ def conditioning_vector(cam2world, K_norm) -> np.ndarray:
     return np.concatenate([cam2world.reshape(lead + (16,)), K_norm.reshape(lead + (9,))], axis=-1)
 
 
+def _is_tensor(x) -> bool:
+    """A torch tensor, without importing torch for numpy callers (command-line help stays fast)."""
+    return type(x).__module__.split(".")[0] == "torch"
+
+
 def ray_range(radius):
     """EG3D's ray range (near, far) as distances along the ray, moved with the camera radius.
 
     ``radius``: floats or arrays (float64 numpy out), or a tensor (same dtype and device out).
     """
-    r = radius if torch.is_tensor(radius) else np.asarray(radius, dtype=np.float64)
+    r = radius if _is_tensor(radius) else np.asarray(radius, dtype=np.float64)
     return r - RAY_START_BEFORE_ORIGIN, r + RAY_END_BEYOND_ORIGIN
 
 
@@ -140,6 +148,8 @@ def rays(cam2world: torch.Tensor, K_norm: torch.Tensor, resolution: int):
     the point with the full cam2world, subtract the centre, normalize), so GAN renders reproduce
     the originals to float32 rounding. Computed on the device of ``cam2world`` (arrays: the CPU).
     """
+    import torch
+
     cam2world = torch.as_tensor(cam2world, dtype=torch.float32)
     K_norm = torch.as_tensor(K_norm, dtype=torch.float32, device=cam2world.device)
     V, M = cam2world.shape[0], resolution ** 2

@@ -4,7 +4,9 @@ from __future__ import annotations
 import json
 import sys
 
+from .cameras import PROTOCOLS
 from .errors import OneLineParser, UserError, run_command
+from .generators import AVAILABLE
 
 
 def parse_background(text: str, allow_own: bool):
@@ -29,9 +31,9 @@ def build_parser() -> OneLineParser:
     sub = p.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
 
     s = sub.add_parser("sample", help="render subjects into WebDataset shards")
-    s.add_argument("--gan", default="procedural", help="generator: procedural (default), eg3d, panohead, spherehead")
+    s.add_argument("--gan", default="procedural", choices=AVAILABLE, help="head generator")
     s.add_argument("--checkpoint", help="generator checkpoint file (GAN generators)")
-    s.add_argument("--protocol", default="360", help="camera protocol: frontal or 360")
+    s.add_argument("--protocol", default="360", choices=PROTOCOLS, help="camera protocol")
     s.add_argument("--subjects", type=int, default=16, help="number of subjects")
     s.add_argument("--resolution", type=int, default=128, help="image size in pixels (square)")
     s.add_argument("--views", type=int, default=32, help="views per subject (paper: 32)")

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import difflib
 import errno
 import sys
 
@@ -14,11 +15,46 @@ class DatasetError(UserError):
     """A problem with a dataset on disk, stated in one line naming the file."""
 
 
+class DefaultsHelpFormatter(argparse.HelpFormatter):
+    """Appends '(default: X)' to an option's help when it has a real default its help does not state."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if action.default is None or action.default is False or action.default is argparse.SUPPRESS \
+                or "default" in text or not action.option_strings:
+            return text
+        return f"{text} (default: {action.default})"
+
+
 class OneLineParser(argparse.ArgumentParser):
-    """argparse whose usage errors are one line and exit 2 (no usage dump)."""
+    """argparse whose usage errors are one line and exit 2 (no usage dump).
+
+    Help shows each option's default; an unknown option is reported by the subcommand it was
+    given to, with the closest known option as a suggestion.
+    """
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("formatter_class", DefaultsHelpFormatter)
+        super().__init__(*args, **kwargs)
 
     def error(self, message):
         self.exit(2, f"{self.prog}: error: {message}\n")
+
+    def parse_args(self, args=None, namespace=None):
+        ns, extra = self.parse_known_args(args, namespace)
+        if extra:
+            parser = self._chosen_subparser(ns) or self
+            known = [o for a in parser._actions for o in a.option_strings]
+            close = difflib.get_close_matches(extra[0].split("=")[0], known, n=1)
+            parser.error(f"unrecognized arguments: {' '.join(extra)}" + (f" (did you mean {close[0]}?)" if close else ""))
+        return ns
+
+    def _chosen_subparser(self, ns):
+        for action in self._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                chosen = action.choices.get(getattr(ns, action.dest, None))
+                return (chosen._chosen_subparser(ns) or chosen) if isinstance(chosen, OneLineParser) else chosen
+        return None
 
 
 def run_command(prog: str, commands: dict, args, interrupted: str) -> int:

@@ -27,7 +27,7 @@ def test_same_command_gives_identical_bytes(tiny_dataset, tmp_path):
 
 def test_layout_and_sidecars(tiny_dataset):
     names = sorted(p.name for p in Path(tiny_dataset).iterdir())
-    assert names == ["index.json", "shard-000000.json", "shard-000000.tar", "shard-000001.json",
+    assert names == [".datagen.lock", "index.json", "shard-000000.json", "shard-000000.tar", "shard-000001.json",
                      "shard-000001.tar", "truth"]
     side = json.loads(sidecar_path(tiny_dataset, 0).read_text())
     assert side["subjects"] == ["subj00000000", "subj00000001"] and side["files"] == 2 * (1 + 3 * 4)
