@@ -43,8 +43,9 @@ from vtkmodules.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray,
 from vtkmodules.vtkCommonCore import vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkImageData, vtkPolyData
 from vtkmodules.vtkInteractionStyle import vtkInteractorStyleTrackballCamera, vtkInteractorStyleUser
-from vtkmodules.vtkRenderingCore import (vtkActor, vtkActor2D, vtkImageMapper, vtkPolyDataMapper, vtkPolyDataMapper2D, vtkRenderer, vtkRenderWindow,
-                                         vtkRenderWindowInteractor, vtkWindowToImageFilter)
+from vtkmodules.vtkRenderingCore import (vtkActor, vtkActor2D, vtkImageMapper, vtkPolyDataMapper, vtkPolyDataMapper2D,
+                                         vtkRenderer, vtkRenderWindow, vtkRenderWindowInteractor,
+                                         vtkWindowToImageFilter)
 from vtkmodules.vtkRenderingUI import vtkGenericRenderWindowInteractor
 
 from datagen.errors import DatasetError, UserError
@@ -52,8 +53,8 @@ from datagen.shards import decode_exr, decode_png, read_sidecar, tar_path
 
 from .events import REASONS, EventLog
 
-# imported for what it registers: the OpenGL window behind vtkRenderWindow (vtkRenderingUI, imported
-# below, registers the X interactor behind vtkRenderWindowInteractor)
+# imported for what it registers: the OpenGL window behind vtkRenderWindow (vtkRenderingUI registers
+# the X interactor behind vtkRenderWindowInteractor)
 VTK_BACKENDS = (vtkRenderingOpenGL2,)
 REASON_KEYS = {str(i + 1): r for i, r in enumerate(REASONS)}
 REASON_SHORT = {"multiple_faces": "faces", "broken_back": "back", "artifacts": "artifacts", "blur": "blur",
@@ -577,7 +578,8 @@ def surface_mesh(views, max_grid: int = 80, slope: float = 5.0, min_facing: floa
         p = pts[valid]
         normal = np.cross(p[tris[:, 1]] - p[tris[:, 0]], p[tris[:, 2]] - p[tris[:, 0]])
         ray = p[tris].mean(axis=1) - c2w[:3, 3]
-        facing = np.abs((normal * ray).sum(1)) / (np.linalg.norm(normal, axis=1) * np.linalg.norm(ray, axis=1) + 1e-12)
+        norms = np.linalg.norm(normal, axis=1) * np.linalg.norm(ray, axis=1) + 1e-12
+        facing = np.abs((normal * ray).sum(1)) / norms
         tris = tris[facing >= min_facing]
         faces.append(tris + base)
         points.append(p)
@@ -653,6 +655,8 @@ class Prefetcher:
     def _run(self, key, fn):
         value = fn()
         self._keep(key, value)
+        with self._lock:  # done: the value is kept, the future need not be
+            self._futures.pop(key, None)
         return value
 
     def get(self, key, fn):
@@ -973,8 +977,9 @@ class ReviewApp:
             return
         self.done -= self.log.verdict(target.subject) is None and target.subject in self.index
         now = self.log.verdict(target.subject)
+        now_text = verdict_text(now.action, now.reasons) if now else "none"
         self.notice = ("undo", f"undone: {target.subject} {verdict_text(target.action, target.reasons)}; "
-                               f"its verdict is now {verdict_text(now.action if now else None, now.reasons if now else ())}")
+                               f"its verdict is now {now_text}")
         if target.subject not in self.index:
             self.notice = ("undo", self.notice[1] + " (not in this queue)")
             self.refresh()
@@ -1039,8 +1044,8 @@ class ReviewApp:
         self.refresh()
         ahead = [self.queue[p] for p in (self.pos + 1, self.pos + 2, self.pos - 1) if 0 <= p < len(self.queue)]
         work = [((it.subject, size), (lambda it=it: self._make_review_frame(it, size))) for it in ahead]
-        if frame.meta is not None:  # this subject's 3D surface, once the next one is ready
-            work.insert(1, (("surface", item.subject), lambda: self._surface_of(item, frame)))
+        if frame.meta is not None:  # this subject's 3D surface, once the next two are ready
+            work.insert(2, (("surface", item.subject), lambda: self._surface_of(item, frame)))
         self.frames.want(work)
 
     def status_text(self) -> tuple[str, str]:
@@ -1062,6 +1067,8 @@ class ReviewApp:
                 self.show_subject()
             elif self.mode == "triage":
                 self.show_triage_page()
+            else:
+                self.refresh()
 
     # -- 3D view ----------------------------------------------------------------------------------------
     def toggle_3d(self):
@@ -1280,22 +1287,21 @@ class ReviewApp:
         self._draw_triage()
 
     def next_page(self):
-        if self.mode == "triage":
-            if self.triage_page + 1 < self.n_pages:
-                self.triage_page += 1
-                self.show_triage_page()
-            else:
-                self.notice = ("warn", "this is the last page")
-                self._draw_triage()
+        self._turn_page(+1)
 
     def previous_page(self):
-        if self.mode == "triage":
-            if self.triage_page > 0:
-                self.triage_page -= 1
-                self.show_triage_page()
-            else:
-                self.notice = ("warn", "this is the first page")
-                self._draw_triage()
+        self._turn_page(-1)
+
+    def _turn_page(self, step: int):
+        """Show the next (+1) or previous (-1) triage page; changes stay where they were made."""
+        if self.mode != "triage":
+            return
+        if 0 <= self.triage_page + step < self.n_pages:
+            self.triage_page += step
+            self.show_triage_page()
+        else:
+            self.notice = ("warn", f"this is the {'last' if step > 0 else 'first'} page")
+            self._draw_triage()
 
     def cycle_triage_view(self):
         if self.mode == "triage":

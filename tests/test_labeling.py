@@ -390,7 +390,8 @@ def test_reject_flagged_without_current_preflags_is_one_line(tiny_dataset, tmp_p
     labels = tmp_path / "labels"
     labels.mkdir()
     out = tmp_path / "m" / "a-v1.json"
-    code = label_main(["compile", str(root), "--labels", str(labels), "--unreviewed", "reject-flagged", "--out", str(out)])
+    code = label_main(["compile", str(root), "--labels", str(labels), "--unreviewed", "reject-flagged",
+                       "--out", str(out)])
     err = capsys.readouterr().err
     assert code == 2 and len(err.strip().splitlines()) == 1 and message in err and not out.exists()
     assert label_main(["compile", str(root), "--labels", str(labels), "--out", str(out)]) == 0

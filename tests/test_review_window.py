@@ -344,8 +344,8 @@ def test_real_window_session_typed_with_xdotool(xvfb, tiny_dataset, tmp_path):
     env = dict(os.environ, DISPLAY=xvfb, PYTHONPATH=str(ROOT))
     labels = tmp_path / "labels"
     log = labels / "zoe.jsonl"
-    proc = subprocess.Popen([sys.executable, "-m", "labeling_tool.cli", "review", str(tiny_dataset), "--reviewer", "zoe",
-                             "--labels", str(labels), "--window-size", "1000x600"], env=env,
+    proc = subprocess.Popen([sys.executable, "-m", "labeling_tool.cli", "review", str(tiny_dataset),
+                             "--reviewer", "zoe", "--labels", str(labels), "--window-size", "1000x600"], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
     def xdo(*args):
