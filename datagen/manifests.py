@@ -8,7 +8,10 @@ A manifest is one JSON file (readable with ``json.load`` or ``pandas.json_normal
      "subjects": [{"subject", "shard", "verdict", "reasons", "reviewers", "votes", "split"}, ...]}
 
 verdict: ``accepted`` / ``rejected``; split: ``train`` / ``test`` for accepted subjects (None for
-rejected). The test split is the ``test_count`` accepted subjects with the smallest
+rejected). Subjects nobody reviewed are accepted (``unreviewed: accept``), rejected (``reject``),
+or rejected only when the dataset's pre-flags flag them (``reject-flagged``); ``counts`` says how
+many were unreviewed, how many of those were flagged (None without pre-flags) and how many flagged
+ones were accepted unreviewed. The test split is the ``test_count`` accepted subjects with the smallest
 sha256(subject id): deterministic, and independent of reviewing order. The version is the file's
 name without extension; a new review produces a new file (``parent_version`` names the one it
 revises); a published manifest is never edited. ``dataset_index_sha256`` ties a manifest to the

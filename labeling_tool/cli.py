@@ -1,12 +1,26 @@
 """The ``label-tool`` command line: auto, review, compile, stats."""
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from pathlib import Path
 
 from datagen.errors import OneLineParser, UserError, run_command
 from datagen.shards import read_index
+
+from .manifest import UNREVIEWED
+
+
+def window_size(text: str) -> tuple[int, int]:
+    """'1920x1080' -> (1920, 1080)."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not WIDTHxHEIGHT, e.g. 1920x1080") from None
+    if not (320 <= w <= 16384 and 240 <= h <= 16384):
+        raise argparse.ArgumentTypeError(f"{text!r}: width 320..16384 and height 240..16384 pixels")
+    return w, h
 
 
 def build_parser() -> OneLineParser:
@@ -26,7 +40,9 @@ def build_parser() -> OneLineParser:
     r.add_argument("--queue", default="all", choices=("all", "worst", "suspicious"),
                    help="all (dataset order), worst (by pre-flag score), suspicious (flagged only)")
     r.add_argument("--triage", action="store_true", help="start in triage mode (many subjects per screen)")
-    r.add_argument("--columns", type=int, default=8)
+    r.add_argument("--columns", type=int, default=8, help="views per row in review mode")
+    r.add_argument("--window-size", type=window_size, metavar="WxH",
+                   help="window size in pixels (default: fit the screen; 1600x900 off-screen)")
     r.add_argument("--off-screen", action="store_true", help="no window (scripted use)")
     r.add_argument("--keys", default="", help="off-screen: keys to press, space separated, then exit")
     r.add_argument("--screenshot", help="off-screen: save a screenshot after the keys")
@@ -36,7 +52,9 @@ def build_parser() -> OneLineParser:
     c.add_argument("--labels", default="labels")
     c.add_argument("--out", help="manifest file (default: manifests/<dataset>-v<N+1>.json)")
     c.add_argument("--policy", default="any-bad", choices=("any-bad", "majority"))
-    c.add_argument("--unreviewed", default="accept", choices=("accept", "reject"))
+    c.add_argument("--unreviewed", default="accept", choices=UNREVIEWED,
+                   help="subjects nobody reviewed: accept, reject, or reject-flagged (reject those the "
+                        "pre-flags of 'label-tool auto' flag)")
     c.add_argument("--test-count", type=int, default=None,
                    help="held-out test subjects (default: min(100, accepted/10); the paper holds out 100)")
     c.add_argument("--parent", help="the manifest this version revises")
@@ -76,7 +94,7 @@ def build_queue(target: str, queue: str):
         r = scores.get(it.subject)
         if r:
             it.score = r["score"]
-            it.flags = ", ".join(f"{k} {r['detectors'][k]['score']:.2f}" for k in r["flags"])
+            it.flags = tuple(sorted(((k, r["detectors"][k]["score"]) for k in r["flags"]), key=lambda f: -f[1]))
     if queue in ("worst", "suspicious"):
         items.sort(key=lambda it: -(it.score or 0.0))
     if queue == "suspicious":
@@ -101,20 +119,25 @@ def _review(args) -> int:
     from .gui import ReviewApp
 
     root, items = build_queue(args.target, args.queue)
+    if args.columns < 1:
+        raise UserError("--columns must be at least 1")
     app = ReviewApp(root, items, args.reviewer, args.labels, off_screen=args.off_screen, columns=args.columns,
-                    start_in_triage=args.triage)
+                    start_in_triage=args.triage, window_size=args.window_size)
     for problem in app.log.problems:
         print(f"note: {problem}", file=sys.stderr)
     if args.off_screen:
         for key in args.keys.split():
+            if app.closed:  # Escape closed it
+                break
             app.press(key)
-        if args.screenshot:
+        if args.screenshot and not app.closed:
             app.screenshot(args.screenshot)
         app.close()
     else:
         app.run()
-    verdicts = app.log.verdicts()
-    print(f"{args.reviewer}: {sum(1 for i in items if i.subject in verdicts)}/{len(items)} reviewed; log {app.log.path}")
+    print(f"{args.reviewer}: {app.done}/{len(items)} reviewed; log {app.log.path}")
+    if app.pending:
+        print(f"{len(app.pending)} triage change(s) were not committed (nothing was written for them)")
     return 0
 
 
@@ -131,6 +154,12 @@ def _compile(args) -> int:
     print(f"wrote {out}: {c['accepted']} accepted ({c['train']} train, {c['test']} test), {c['rejected']} rejected, "
           f"{c['reviewed']}/{c['subjects']} reviewed, {c['conflicts']} conflicts (policy {h['policy']}, "
           f"unreviewed {h['unreviewed']})")
+    if c["unreviewed_flagged"] is None and c["unreviewed"] and h["unreviewed"] == "accept":
+        print(f"note: {c['unreviewed']} subject(s) accepted without review; no current pre-flags to tell which are "
+              f"suspicious (run 'label-tool auto {args.dataset}')")
+    elif c["unreviewed_flagged_accepted"]:
+        print(f"warning: {c['unreviewed_flagged_accepted']} flagged subject(s) accepted without review; review them "
+              "(label-tool review --queue suspicious) or compile with --unreviewed reject-flagged")
     for s in h["conflicts"][:20]:
         print(f"  conflict: {s}")
     return 0

@@ -14,21 +14,27 @@ from datagen.files import atomic_write
 from datagen.manifests import FORMAT, read_manifest
 from datagen.shards import dumps, index_sha256, read_index
 
-from .events import read_logs, verdicts
+from datagen.events import read_logs, verdicts
 
 POLICIES = ("any-bad", "majority")
+UNREVIEWED = ("accept", "reject", "reject-flagged")
 
 
 def subject_hash(subject: str) -> str:
     return hashlib.sha256(subject.encode()).hexdigest()
 
 
-def merge(votes: dict[str, tuple[str, tuple]], policy: str, unreviewed: str) -> tuple[str, list[str]]:
-    """Decide one subject from {reviewer: (good|bad, reasons)} -> (accepted|rejected, reasons)."""
+def merge(votes: dict[str, tuple[str, tuple]], policy: str, unreviewed: str, flagged: bool = False
+          ) -> tuple[str, list[str]]:
+    """Decide one subject from {reviewer: (good|bad, reasons)} -> (accepted|rejected, reasons).
+
+    ``flagged``: the pre-flags flag this subject (used for unreviewed subjects under ``reject-flagged``).
+    """
     bad = {r: v for r, v in votes.items() if v[0] == "bad"}
     reasons = sorted({x for _, rs in bad.values() for x in rs})
     if not votes:
-        return ("accepted" if unreviewed == "accept" else "rejected"), []
+        reject = unreviewed == "reject" or (unreviewed == "reject-flagged" and flagged)
+        return ("rejected" if reject else "accepted"), []
     if policy == "any-bad":
         return ("rejected" if bad else "accepted"), reasons
     # majority: strictly more bad than good votes rejects; a tie rejects (when in doubt, leave it out)
@@ -40,11 +46,12 @@ def compile_manifest(dataset, labels_dir, policy: str = "any-bad", unreviewed: s
     """Build the manifest dict (not written); see the module docstring."""
     if policy not in POLICIES:
         raise UserError(f"unknown policy {policy!r}; choose one of: {', '.join(POLICIES)}")
-    if unreviewed not in ("accept", "reject"):
-        raise UserError("--unreviewed must be accept or reject")
+    if unreviewed not in UNREVIEWED:
+        raise UserError(f"--unreviewed must be one of: {', '.join(UNREVIEWED)}")
     index = read_index(dataset)
     index_sha = index_sha256(dataset)
     logs, problems = read_logs(labels_dir)
+    flagged = flagged_subjects(dataset, required=unreviewed == "reject-flagged")
     per_reviewer = {r: {s: (e.action, e.reasons) for s, e in verdicts(ev).items() if e.action in ("good", "bad")}
                     for r, ev in logs.items()}
     known = {s for shard in index["shards"] for s in shard["subjects"]}
@@ -55,7 +62,7 @@ def compile_manifest(dataset, labels_dir, policy: str = "any-bad", unreviewed: s
     for shard in index["shards"]:
         for s in shard["subjects"]:
             votes = {r: v[s] for r, v in per_reviewer.items() if s in v}
-            verdict, reasons = merge(votes, policy, unreviewed)
+            verdict, reasons = merge(votes, policy, unreviewed, flagged is not None and s in flagged)
             if len({v[0] for v in votes.values()}) > 1:
                 conflicts.append(s)
             rows.append({"subject": s, "shard": shard["name"], "verdict": verdict, "reasons": reasons,
@@ -67,6 +74,8 @@ def compile_manifest(dataset, labels_dir, policy: str = "any-bad", unreviewed: s
     test = {r["subject"] for r in sorted(accepted, key=lambda r: subject_hash(r["subject"]))[:test_count]}
     for r in accepted:
         r["split"] = "test" if r["subject"] in test else "train"
+    unreviewed_rows = [r for r in rows if not r["reviewers"]]
+    unreviewed_flagged = None if flagged is None else [r for r in unreviewed_rows if r["subject"] in flagged]
     parent_version = None
     if parent:
         parent_manifest = read_manifest(parent)
@@ -79,6 +88,10 @@ def compile_manifest(dataset, labels_dir, policy: str = "any-bad", unreviewed: s
         "train": sum(1 for r in accepted if r["split"] == "train"),
         "test": len(test),
         "conflicts": len(conflicts),
+        "unreviewed": len(unreviewed_rows),
+        "unreviewed_flagged": None if flagged is None else len(unreviewed_flagged),
+        "unreviewed_flagged_accepted": None if flagged is None else
+        sum(1 for r in unreviewed_flagged if r["verdict"] == "accepted"),
     }
     header = {
         "format": FORMAT,
@@ -94,6 +107,25 @@ def compile_manifest(dataset, labels_dir, policy: str = "any-bad", unreviewed: s
         "log_problems": problems,
     }
     return {"header": header, "subjects": rows}
+
+
+def flagged_subjects(dataset, required: bool) -> set[str] | None:
+    """Subjects the dataset's pre-flags (``label-tool auto``) flag; None when there are none or they are
+    stale (made for another index.json), or a UserError when ``required``."""
+    from .preflags import is_stale, read_preflags
+
+    try:
+        report = read_preflags(dataset)
+    except UserError as e:
+        if required:
+            raise UserError(f"--unreviewed reject-flagged needs pre-flags: {e}") from None
+        return None
+    if is_stale(dataset, report):
+        if required:
+            raise UserError(f"--unreviewed reject-flagged: the pre-flags of {dataset} were made for another "
+                            f"index.json; run 'label-tool auto {dataset}' again")
+        return None
+    return {r["subject"] for r in report["subjects"] if r["flags"]}
 
 
 VERSION_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")

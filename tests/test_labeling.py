@@ -1,22 +1,24 @@
 """Curation: event logs, headless review sessions driven by keys, resume after kill -9, manifests."""
+import hashlib
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
 
-
 import pytest
 
-pv = pytest.importorskip("pyvista", reason="the review GUI needs pyvista")
+pytest.importorskip("vtkmodules", reason="the review window needs VTK")
 
 from labeling_tool.cli import build_queue, main as label_main  # noqa: E402
-from labeling_tool.events import EventLog, read_log, read_logs, verdicts  # noqa: E402
+from datagen.events import EventLog, parse_event, read_log, read_logs, verdicts  # noqa: E402
 from labeling_tool.gui import ReviewApp  # noqa: E402
 from datagen.manifests import read_manifest  # noqa: E402
 from labeling_tool.manifest import compile_manifest, subject_hash  # noqa: E402
+from labeling_tool.preflags import FORMAT as PREFLAGS_FORMAT, write_preflags  # noqa: E402
 from datagen.errors import UserError  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -49,7 +51,7 @@ def test_keys_produce_events(app_factory, tmp_path):
         app.press(k)
     assert actions(tmp_path / "labels", "alice") == [
         ("subj00000000", "good", ()), ("subj00000001", "bad", ("broken_back",)),
-        ("subj00000002", "undo", ()), ("subj00000001", "bad", ("artifacts",))]
+        ("subj00000001", "undo", ()), ("subj00000001", "bad", ("artifacts",))]
     v = app.log.verdicts()
     assert v["subj00000000"].action == "good" and v["subj00000001"].reasons == ("artifacts",)
     assert app.pos == 2
@@ -71,12 +73,13 @@ def test_navigation_and_next_unreviewed(app_factory):
 
 def test_default_vtk_and_pyvista_keys_do_not_fire(app_factory):
     app = app_factory()
-    actor = app._grid_actors[0]
-    for k in ["w", "s", "q", "e", "r", "f", "3", "plus", "Up"]:
+    app.press("v")
+    surface = app._surface
+    for k in ["w", "q", "e", "f", "3", "plus", "Up"]:
         app.press(k)
-    assert actor.GetProperty().GetRepresentation() == 2  # still surface, not wireframe
-    assert app.plotter.render_window is not None  # 'q' / 'e' did not close the window
-    assert app.mode == "review"
+    assert surface.GetProperty().GetRepresentation() == 2  # still surface, not wireframe
+    assert not app.closed  # 'q' / 'e' did not close the window
+    assert app.mode == "3d" and app.log.events == []
 
 
 def test_screenshot_is_not_blank_and_hud_shows_state(app_factory):
@@ -84,29 +87,33 @@ def test_screenshot_is_not_blank_and_hud_shows_state(app_factory):
     app.press("g")
     img = app.screenshot()
     assert img.shape[:2] == (360, 640) and img.std() > 20
-    assert "subj00000001" in app.hud_text() and "reviewed 1, left 2" in app.hud_text()
+    status, detail = app.status_text()
+    assert "subj00000001" in status and "reviewed 1, left 2" in status and "verdict: none" in detail
 
 
 def test_help_and_3d_toggles(app_factory):
     app = app_factory()
     app.press("h")
-    assert app.show_help
+    assert app.show_help and app._help.visible()
+    app.press("h")
+    assert not app._help.visible()
     app.press("v")
-    assert app.mode == "3d" and "cloud" in app.plotter.actors
+    assert app.mode == "3d" and app._surface is not None and not app._grid.visible()
     assert app.screenshot().std() > 5
     app.press("v")
-    assert app.mode == "review" and "cloud" not in app.plotter.actors
+    assert app.mode == "review" and app._surface is None and app._grid.visible()
 
 
 def test_triage_marks_and_commits_a_page(app_factory, tmp_path):
     app = app_factory(start_in_triage=True)
-    assert app.mode == "triage" and len(app._triage_actors) == 3
+    assert app.mode == "triage" and len(app._page_thumbs) == 3
     app.press("Right")
-    app.press("1")          # subject 1 bad (multiple faces)
-    app._on_click((2 * 1.06, 0.0, 0.0))  # a click on cell 2 toggles its mark
-    assert app.triage_marks == {"subj00000001": "multiple_faces", "subj00000002": "artifacts"}
-    app._on_click((2 * 1.06, 0.0, 0.0))
-    assert "subj00000002" not in app.triage_marks
+    app.press("1")          # subject 1 bad (multiple faces); the cursor stays
+    assert app.triage_cursor == 1
+    app.click(*app.cell_center(2))  # a click on cell 2 flips it to bad with its default reason
+    assert app.pending == {"subj00000001": ("bad", ("multiple_faces",)), "subj00000002": ("bad", ("artifacts",))}
+    app.click(*app.cell_center(2))  # again: the change is taken back
+    assert "subj00000002" not in app.pending
     app.press("Return")
     assert actions(tmp_path / "labels", "alice") == [
         ("subj00000000", "good", ()), ("subj00000001", "bad", ("multiple_faces",)), ("subj00000002", "good", ())]
@@ -163,7 +170,7 @@ def test_corrupt_and_partial_lines_are_reported(tmp_path):
         f.write(b'{"not": "an event"}\n{"seq": 3, "action": "go')
     events, problems = read_log(path)
     assert len(events) == 1
-    assert any(":2: unreadable event" in p for p in problems)
+    assert any(":2: not a valid event (missing" in p for p in problems)
     assert any(":3: partial last line" in p for p in problems)
     _, all_problems = read_logs(tmp_path)
     assert len(all_problems) == 2
@@ -249,3 +256,144 @@ def test_review_cli_off_screen_with_keys(tiny_dataset, tmp_path, capsys):
     assert "2/2 reviewed" in capsys.readouterr().out
     assert label_main(["review", str(tiny_dataset), "--reviewer", "fay", "--queue", "suspicious",
                        "--labels", str(labels), "--off-screen"]) == 2 or (Path(tiny_dataset) / "preflags.json").exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# The event-log format: one check, the same reading for review and compile
+
+
+def event_line(**fields) -> str:
+    d = {"seq": 1, "time": "2026-01-01T00:00:00.000+00:00", "reviewer": "alice", "subject": "subj00000000",
+         "shard": "shard-000000", "action": "good", "reasons": []}
+    d.update(fields)
+    return json.dumps({k: v for k, v in d.items() if v != "<absent>"})
+
+
+@pytest.mark.parametrize("line, message", [
+    (event_line(seq=None), "seq must be a positive integer, not null"),
+    (event_line(seq=True), "seq must be a positive integer"),
+    (event_line(seq="3"), "seq must be a positive integer"),
+    (event_line(seq=0), "seq must be a positive integer"),
+    (event_line(reasons=3), "reasons must be a list"),
+    (event_line(action="bad", reasons=[3]), "reasons must be a list"),
+    (event_line(subject=5), "subject must be a non-empty string"),
+    (event_line(time=None), "time must be a non-empty string"),
+    (event_line(action="great"), "unknown action"),
+    (event_line(action="bad"), "a bad verdict without a reason"),
+    (event_line(action="bad", reasons=["ugly"]), "unknown reason"),
+    (event_line(reasons=["blur"]), "reasons on a good event"),
+    (event_line(shard="<absent>"), "missing shard"),
+    ("[1, 2]", "not a JSON object"),
+    (event_line(reviewer="bob"), "an event of reviewer 'bob' in the log of 'alice'"),
+])
+def test_parse_event_checks_every_field(line, message):
+    with pytest.raises(ValueError, match=message):
+        parse_event(line, "alice")
+
+
+def test_older_lines_without_reasons_are_read():
+    assert parse_event(event_line(reasons="<absent>"), "alice").reasons == ()
+    assert parse_event(event_line(reasons=None, extra="ignored"), "alice").reasons == ()
+
+
+def write_troubled_logs(labels: Path) -> None:
+    """alice's log with a foreign event, bad fields and a repeated number; a folder named bob.jsonl."""
+    labels.mkdir(parents=True)
+    lines = [event_line(seq=1, subject="subj00000000"),
+             event_line(seq=2, subject="subj00000001", reviewer="bob"),       # another reviewer's event
+             event_line(seq=None, subject="subj00000002"),                   # "seq": null
+             event_line(seq=3, subject="subj00000002", action="bad", reasons=3),  # "reasons": 3
+             event_line(seq=1, subject="subj00000002", action="bad", reasons=["blur"])]  # number repeated
+    (labels / "alice.jsonl").write_text("\n".join(lines) + "\n")
+    (labels / "bob.jsonl").mkdir()
+
+
+def test_troubled_logs_are_read_alike_by_review_and_compile(tiny_dataset, tmp_path, capsys):
+    labels = tmp_path / "labels"
+    write_troubled_logs(labels)
+    alice = str(labels / "alice.jsonl")
+    expected = [f"{alice}:2: an event of reviewer 'bob' in the log of 'alice' (ignored)",
+                f"{alice}:3: not a valid event (seq must be a positive integer, not null)",
+                f"{alice}:4: not a valid event (reasons must be a list of reason names, not 3)",
+                f"{alice}:5: event number 1 repeats line 1"]
+    _, queue = build_queue(str(tiny_dataset), "all")
+    app = ReviewApp(tiny_dataset, queue, "alice", labels, off_screen=True, window_size=(640, 360))
+    review_seen = {s: e.action for s, e in app.log.verdicts().items()}
+    assert app.log.problems == expected
+    assert app.done == 2 and app.pos == 1  # subj00000001's verdict was bob's: alice has not reviewed it
+    app.close()
+    m = compile_manifest(tiny_dataset, labels)
+    assert [p for p in m["header"]["log_problems"] if p.startswith(alice)] == expected
+    assert any("bob.jsonl: not a file" in p for p in m["header"]["log_problems"])
+    rows = {r["subject"]: r for r in m["subjects"]}
+    compile_seen = {s: r["votes"]["alice"] for s, r in rows.items() if "alice" in r["votes"]}
+    assert compile_seen == review_seen == {"subj00000000": "good", "subj00000002": "bad"}
+    assert rows["subj00000001"]["reviewers"] == []
+    out = tmp_path / "m" / "ds-v1.json"
+    assert label_main(["compile", str(tiny_dataset), "--labels", str(labels), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and f"{alice}:3:" in err and "bob.jsonl: not a file" in err
+    assert label_main(["stats", str(tiny_dataset), "--labels", str(labels)]) == 0
+    assert f"{alice}:4:" in capsys.readouterr().out
+
+
+def test_review_refuses_a_log_that_is_a_folder(tiny_dataset, tmp_path, capsys):
+    labels = tmp_path / "labels"
+    write_troubled_logs(labels)
+    code = label_main(["review", str(tiny_dataset), "--reviewer", "bob", "--labels", str(labels), "--off-screen"])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "bob.jsonl: not a file" in err
+
+
+# ------------------------------------------------------------------------------------------------
+# Subjects nobody reviewed
+
+
+def with_preflags(tiny_dataset, tmp_path, flagged, stale=False) -> Path:
+    """A copy of the tiny dataset whose pre-flags flag ``flagged`` (janus)."""
+    root = tmp_path / "ds"
+    shutil.copytree(tiny_dataset, root)
+    index = hashlib.sha256((root / "index.json").read_bytes()).hexdigest()
+    subjects = [{"subject": f"subj0000000{i}", "score": 0.9 if f"subj0000000{i}" in flagged else 0.1,
+                 "flags": ["janus"] if f"subj0000000{i}" in flagged else [],
+                 "detectors": {"janus": {"score": 0.9, "why": "a face on the back"}}} for i in range(3)]
+    write_preflags(root, {"format": PREFLAGS_FORMAT, "dataset_index_sha256": "0" * 64 if stale else index,
+                          "subjects": subjects})
+    return root
+
+
+def test_compile_reports_and_can_reject_flagged_subjects_nobody_reviewed(tiny_dataset, tmp_path, capsys):
+    root = with_preflags(tiny_dataset, tmp_path, flagged={"subj00000001", "subj00000002"})
+    labels = tmp_path / "labels"
+    log = EventLog(labels, "alice")
+    log.append("subj00000002", "shard-000001", "good")  # flagged, but reviewed: the review decides
+    log.close()
+    m = compile_manifest(root, labels)
+    c = m["header"]["counts"]
+    assert (c["unreviewed"], c["unreviewed_flagged"], c["unreviewed_flagged_accepted"], c["accepted"]) == (2, 1, 1, 3)
+    assert label_main(["compile", str(root), "--labels", str(labels), "--out", str(tmp_path / "m" / "a-v1.json")]) == 0
+    out = capsys.readouterr().out
+    assert "warning: 1 flagged subject(s) accepted without review" in out and "reject-flagged" in out
+    strict = compile_manifest(root, labels, unreviewed="reject-flagged")
+    verdict = {r["subject"]: r["verdict"] for r in strict["subjects"]}
+    assert verdict == {"subj00000000": "accepted", "subj00000001": "rejected", "subj00000002": "accepted"}
+    assert strict["header"]["counts"]["unreviewed_flagged_accepted"] == 0
+    assert label_main(["compile", str(root), "--labels", str(labels), "--unreviewed", "reject-flagged",
+                       "--out", str(tmp_path / "m" / "a-v2.json")]) == 0
+    assert "warning" not in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("stale, message", [(False, "needs pre-flags"), (True, "made for another index.json")])
+def test_reject_flagged_without_current_preflags_is_one_line(tiny_dataset, tmp_path, capsys, stale, message):
+    root = with_preflags(tiny_dataset, tmp_path, flagged={"subj00000001"}, stale=stale)
+    if not stale:
+        (root / "preflags.json").unlink()
+    labels = tmp_path / "labels"
+    labels.mkdir()
+    out = tmp_path / "m" / "a-v1.json"
+    code = label_main(["compile", str(root), "--labels", str(labels), "--unreviewed", "reject-flagged",
+                       "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1 and message in err and not out.exists()
+    assert label_main(["compile", str(root), "--labels", str(labels), "--out", str(out)]) == 0
+    assert "no current pre-flags" in capsys.readouterr().out

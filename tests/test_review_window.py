@@ -1,0 +1,388 @@
+"""The review window driven by its keys: what each key writes, what the screen says, the 3D surface.
+
+Sessions run off-screen (EGL) through the same key and click handlers as the window; one session
+runs in a real window on Xvfb, typed with xdotool, when both are installed.
+"""
+import ctypes.util
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("vtkmodules", reason="the review window needs VTK")
+
+from datagen.cameras import intrinsics, look_at, rays  # noqa: E402
+from labeling_tool.cli import build_queue, main as label_main  # noqa: E402
+from datagen.events import read_log  # noqa: E402
+from labeling_tool.gui import (BACKGROUND, FLAG_REASON, HELP, Layout, QueueItem, ReviewApp, Window,  # noqa: E402
+                               fit_window, polydata, surface_actor, surface_mesh, view_points)
+from labeling_tool.manifest import compile_manifest  # noqa: E402
+from labeling_tool.preflags import DETECTOR_NAMES  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+S0, S1, S2 = "subj00000000", "subj00000001", "subj00000002"
+
+
+@pytest.fixture
+def make_app(tiny_dataset, tmp_path):
+    apps = []
+
+    def make(reviewer="alice", queue=None, **kw):
+        if queue is None:
+            _, queue = build_queue(str(tiny_dataset), "all")
+        kw.setdefault("window_size", (800, 450))
+        app = ReviewApp(tiny_dataset, queue, reviewer, tmp_path / "labels", off_screen=True, **kw)
+        apps.append(app)
+        return app
+    yield make
+    for a in apps:
+        a.close()
+
+
+def written(tmp_path, reviewer="alice"):
+    events, problems = read_log(tmp_path / "labels" / f"{reviewer}.jsonl")
+    assert problems == []
+    return [(e.subject, e.action, e.reasons) for e in events]
+
+
+def press(app, keys: str):
+    for k in keys.split():
+        app.press(k)
+
+
+# ------------------------------------------------------------------------------------------------
+# Triage commits
+
+
+def test_triage_commit_writes_only_the_changes_and_new_cells(make_app, tmp_path):
+    app = make_app()
+    press(app, "Right 2")                   # review: subject 1 bad (broken back)
+    press(app, "t")
+    assert app.mode == "triage"
+    lines, frame = app.cell_state(app.queue[1])
+    assert "saved bad: back" in lines[0][0] and frame is not None  # the saved verdict is on the cell
+    press(app, "Return")
+    assert written(tmp_path) == [(S1, "bad", ("broken_back",)), (S0, "good", ()), (S2, "good", ())]
+    assert app.log.verdict(S1).action == "bad"  # not overwritten by the commit
+    press(app, "Return")                    # the same page again: nothing to write, and it says so
+    assert len(written(tmp_path)) == 3
+    assert app.notice[0] == "warn" and "nothing to commit" in app.notice[1]
+
+
+def test_triage_flips_a_saved_verdict_only_when_told(make_app, tmp_path):
+    app = make_app()
+    press(app, "2 g g t")                   # 0 bad, 1 good, 2 good; triage opens on subject 2
+    assert app.triage_cursor == 2
+    press(app, "Left Left space")           # cell 0 (saved bad) flips to good
+    press(app, "Right 5")                   # cell 1 (saved good) becomes bad: other
+    assert app.pending == {S0: ("good", ()), S1: ("bad", ("other",))}
+    press(app, "Right 5 g")                 # a change back to the saved verdict is no change
+    assert S2 not in app.pending
+    press(app, "Return")
+    assert written(tmp_path)[3:] == [(S0, "good", ()), (S1, "bad", ("other",))]
+    assert "1 kept their saved verdict" in app.notice[1]
+
+
+def test_pages_can_be_left_and_revisited_without_committing(make_app, tmp_path):
+    app = make_app(triage_shape=(1, 2), start_in_triage=True)   # pages [0, 1], [2]
+    press(app, "3")                         # subject 0 bad: artifacts, not written yet
+    press(app, "n")
+    assert app.triage_page == 1 and written(tmp_path) == []
+    press(app, "Return")                    # commits page 2 only
+    assert written(tmp_path) == [(S2, "good", ())]
+    assert "last page" in app.notice[1]
+    press(app, "p")
+    assert app.pending == {S0: ("bad", ("artifacts",))}  # the change waited on its page
+    lines, frame = app.cell_state(app.queue[0])
+    assert "new > bad: artifacts" in lines[0][0] and frame[1] >= 4
+    press(app, "Next Prior Return")         # PgDn / PgUp move too
+    assert written(tmp_path)[1:] == [(S0, "bad", ("artifacts",)), (S1, "good", ())]
+    assert app.triage_page == 1             # a commit moves on to the next page
+
+
+def test_quitting_with_changes_not_committed_asks_twice(make_app, tmp_path):
+    app = make_app(start_in_triage=True)
+    press(app, "2 Escape")
+    assert not app.closed and app.notice[0] == "warn" and "not committed" in app.notice[1]
+    press(app, "Escape")
+    assert app.closed and written(tmp_path) == []
+
+
+# ------------------------------------------------------------------------------------------------
+# Undo, reasons, the cursor
+
+
+def test_undo_names_the_subject_whose_verdict_it_cancels(make_app, tmp_path):
+    app = make_app()
+    press(app, "g 5 z")
+    assert written(tmp_path) == [(S0, "good", ()), (S1, "bad", ("other",)), (S1, "undo", ())]
+    assert app.pos == 1 and app.notice[0] == "undo" and S1 in app.notice[1]
+    press(app, "Right g z")                 # on the last subject (no move after the verdict)
+    assert written(tmp_path)[-2:] == [(S2, "good", ()), (S2, "undo", ())]
+    press(app, "z z z")                     # undo subject 0 too, then nothing is left to undo
+    assert written(tmp_path)[-1] == (S0, "undo", ()) and app.log.verdicts() == {}
+    assert app.notice == ("warn", "nothing to undo")
+    press(app, "t Return z")                # in triage: the last committed cell
+    assert written(tmp_path)[-1] == (S2, "undo", ()) and app.triage_cursor == 2
+
+
+def test_triage_reason_keys_stay_on_the_cell_and_flips_use_the_preflag(make_app, tmp_path):
+    queue = [QueueItem(S0, "shard-000000", 0.9, (("janus", 0.9), ("blur", 0.6))),
+             QueueItem(S1, "shard-000000", 0.7, (("blur", 0.7),)), QueueItem(S2, "shard-000001")]
+    app = make_app(queue=queue, start_in_triage=True)
+    press(app, "4")
+    assert app.triage_cursor == 0 and app.pending == {S0: ("bad", ("blur",))}
+    press(app, "1")                          # another reason for the same cell: still cell 0
+    assert app.triage_cursor == 0 and app.pending == {S0: ("bad", ("multiple_faces",))}
+    app.click(*app.cell_center(1))
+    app.click(*app.cell_center(2))
+    assert app.pending[S1] == ("bad", ("blur",)) and app.pending[S2] == ("bad", ("artifacts",))
+    lines, _ = app.cell_state(queue[0])
+    assert "janus 0.90, blur 0.60" in lines[1][0] and "flip=faces" in lines[1][0]
+    press(app, "Return")
+    assert written(tmp_path) == [(S0, "bad", ("multiple_faces",)), (S1, "bad", ("blur",)),
+                                 (S2, "bad", ("artifacts",))]
+
+
+def test_every_detector_has_a_default_reason():
+    assert set(FLAG_REASON) == set(DETECTOR_NAMES)
+
+
+def test_a_repeated_verdict_writes_nothing_and_says_so(make_app, tmp_path):
+    app = make_app()
+    press(app, "3 Left 3")
+    assert written(tmp_path) == [(S0, "bad", ("artifacts",))]
+    assert "already bad: artifacts" in app.notice[1]
+
+
+# ------------------------------------------------------------------------------------------------
+# What the screen shows
+
+
+def test_confirmation_labels_and_help_panel(make_app):
+    app = make_app(window_size=(1280, 720))
+    press(app, "4")
+    assert app.notice == ("saved", f"saved: {S0} bad: blur")
+    assert app.hud_lines[2][0] == f"saved: {S0} bad: blur"
+    shot = app.screenshot()
+    assert (np.abs(shot[app._layout.top // 2:app._layout.top].astype(int) - BACKGROUND).sum(-1) > 150).sum() > 200
+    layout = app._layout
+    x0, y0, x1, y1 = layout.image_box(0)
+    label = shot[y1 + 3:y1 + 3 + layout.label_font + 4, x0 - 4:x1]   # the view label under cell 0
+    assert (np.abs(label.astype(int) - BACKGROUND).sum(-1) > 150).sum() > 20
+    press(app, "h")
+    assert app._help.visible()
+    x0, y0 = app._help_origin                # an opaque dark panel over the views
+    panel = app.screenshot()[y0 + 5:y0 + 20, x0 + 5:x0 + 300].astype(int)   # above the first heading
+    assert panel.std(axis=(0, 1)).max() < 1 and panel.mean() < 30
+    keys = {k for k, _ in HELP}
+    assert {"Return", "z", "space / click", "Escape"} <= keys
+    press(app, "Escape")                     # Escape closes the help first
+    assert not app.closed and not app.show_help and not app._help.visible()
+
+
+def test_view_labels_name_yaw_and_pitch(make_app):
+    app = make_app()
+    views = app._current_frame.meta["views"]
+    text = f"{views[1]['name']}  yaw {round(views[1]['yaw_deg']) % 360}  pitch {round(views[1]['pitch_deg'])}"
+    assert len(app._current_frame.views) == len(views) == 4 and "yaw" in text
+
+
+def test_default_window_fits_the_screen():
+    for screen in [(1920, 1080), (1366, 768), (3840, 2160)]:
+        w, h = fit_window(screen)
+        assert w <= screen[0] and h <= screen[1] and w >= 0.9 * screen[0] and h >= 0.85 * screen[1]
+
+
+def test_layout_cells_do_not_overlap_and_clicks_find_them():
+    lay = Layout.fit(1920, 1080, 40, 8, 2)
+    boxes = [lay.image_box(i) for i in range(40)]
+    assert all(b[2] <= lay.width and b[3] <= lay.height for b in boxes) and lay.cell >= 120
+    for i, (x0, y0, x1, y1) in enumerate(boxes):
+        assert lay.index_at((x0 + x1) / 2, (y0 + y1) / 2) == i
+    assert lay.index_at(5, 5) is None
+
+
+@pytest.mark.parametrize("value", ["big", "1920", "10x10", "1920x-5"])
+def test_window_size_mistakes_are_one_line(tiny_dataset, tmp_path, capsys, value):
+    with pytest.raises(SystemExit) as e:
+        label_main(["review", str(tiny_dataset), "--reviewer", "a", "--labels", str(tmp_path / "l"),
+                    "--off-screen", "--window-size", value])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and len(err.strip().splitlines()) == 1 and "--window-size" in err
+
+
+# ------------------------------------------------------------------------------------------------
+# The 3D surface
+
+
+def sphere_views(radius=0.3, resolution=48):
+    """Depth and mask of a sphere at the origin seen from the front (+z, red) and the back (-z, blue)."""
+    K = intrinsics(4.2634)
+    out = []
+    for z, color in ((2.7, (220, 30, 30)), (-2.7, (30, 30, 220))):
+        c2w = look_at(np.array([0.0, 0.0, z]))
+        o, d = (t[0].numpy().astype(np.float64) for t in rays(c2w[None], K[None], resolution))
+        b = (o * d).sum(1)
+        disc = b ** 2 - ((o * o).sum(1) - radius ** 2)
+        hit = disc > 0
+        depth = np.where(hit, -b - np.sqrt(np.maximum(disc, 0)), 0).reshape(resolution, resolution)
+        alpha = np.where(hit, 255, 0).astype(np.uint8).reshape(resolution, resolution)
+        rgb = np.broadcast_to(np.array(color, np.uint8), (resolution, resolution, 3)).copy()
+        out.append((c2w, K, rgb, alpha, depth.astype(np.float32)))
+    return out
+
+
+def test_view_points_follow_the_camera_convention():
+    views = sphere_views()
+    for c2w, K, _, alpha, depth in views:
+        rr, cc = np.nonzero(alpha)
+        p = view_points(c2w, K, 48, rr, cc, depth[rr, cc].astype(np.float64))
+        assert np.allclose(np.linalg.norm(p, axis=1), 0.3, atol=1e-4)
+
+
+def test_the_surface_occludes_what_is_behind_it():
+    arrays = surface_mesh(sphere_views())
+    assert arrays is not None and len(arrays[1]) > 500
+    mesh = polydata(*arrays)
+    assert mesh.GetNumberOfPolys() == len(arrays[1]) and mesh.GetNumberOfPoints() == len(arrays[0])
+    for z, want in ((-3.0, 2), (3.0, 0)):   # from behind only the back camera's blue, from the front red
+        win = Window(True, (200, 200), "test")
+        win.renderer.SetBackground(0, 0, 0)
+        win.renderer.AddActor(surface_actor(mesh))
+        cam = win.renderer.GetActiveCamera()
+        cam.SetPosition(0, 0, z)
+        cam.SetFocalPoint(0, 0, 0)
+        cam.SetViewUp(0, 1, 0)
+        win.renderer.ResetCameraClippingRange()
+        win.render()
+        img = win.screenshot().astype(int)
+        win.close()
+        obj = img.sum(-1) > 60
+        assert obj.mean() > 0.05
+        assert (img[obj].argmax(-1) == want).mean() > 0.97
+
+
+def test_3d_view_is_a_surface_framed_on_the_head(make_app):
+    app = make_app(window_size=(640, 480))
+    press(app, "v")
+    assert app.mode == "3d" and app._surface.GetMapper().GetInput().GetNumberOfPolys() > 100
+    img = app.screenshot()
+    obj = np.abs(img.astype(int) - BACKGROUND).sum(-1) > 40
+    obj[:app._layout.top] = False            # the heads-up text
+    rows, cols = np.nonzero(obj)
+    assert rows.max() - rows.min() > 0.4 * 480 and abs((cols.min() + cols.max()) / 2 - 320) < 60
+    assert "drag rotates" in app.hud_lines[3][0]
+    press(app, "Right")                      # moving on leaves the 3D view
+    assert app.mode == "review" and app.pos == 1 and app._surface is None
+
+
+# ------------------------------------------------------------------------------------------------
+# Without a display
+
+
+@pytest.mark.parametrize("display, message", [(None, "no display: $DISPLAY is not set"),
+                                              (":987", "cannot open the X display ':987'")])
+def test_no_display_is_one_line_and_creates_nothing(tiny_dataset, tmp_path, display, message):
+    if display and ctypes.util.find_library("X11") is None:
+        pytest.skip("libX11 is not installed: the display cannot be checked")
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    if display:
+        env["DISPLAY"] = display
+    env["PYTHONPATH"] = str(ROOT)
+    labels = tmp_path / "labels"
+    done = subprocess.run([sys.executable, "-m", "labeling_tool.cli", "review", str(tiny_dataset), "--reviewer", "a",
+                           "--labels", str(labels)], env=env, capture_output=True, text=True, timeout=120)
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 2 and len(lines) == 1, done.stderr
+    assert lines[0].startswith("label-tool review: error: ") and message in lines[0]
+    assert done.stdout == "" and not labels.exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# A whole session: what compile gives is exactly what was typed
+
+
+def test_a_session_in_review_and_triage_compiles_to_the_typed_verdicts(make_app, tiny_dataset, tmp_path):
+    app = make_app(triage_shape=(1, 2))
+    press(app, "2 g z 1")          # 0 bad (back); 1 good, undone, then bad (faces)
+    press(app, "t")                # triage on subject 2's page
+    press(app, "Return")           # 2 new -> good
+    press(app, "p space Right g Return")   # page 1: flip 0 to good, 1 to good
+    press(app, "z")                # undo the last commit's last verdict: 1 is bad (faces) again
+    app.close()
+    m = compile_manifest(tiny_dataset, tmp_path / "labels")
+    got = {r["subject"]: (r["verdict"], r["reasons"]) for r in m["subjects"]}
+    assert got == {S0: ("accepted", []), S1: ("rejected", ["multiple_faces"]), S2: ("accepted", [])}
+
+
+@pytest.fixture
+def xvfb(tmp_path):
+    """A virtual display (Xvfb) for the real window; skipped when Xvfb or xdotool is missing."""
+    if not (shutil.which("Xvfb") and shutil.which("xdotool")):
+        pytest.skip("Xvfb and xdotool are needed for the real-window session")
+    for n in range(140, 200):
+        if not Path(f"/tmp/.X{n}-lock").exists() and not Path(f"/tmp/.X11-unix/X{n}").exists():
+            break
+    proc = subprocess.Popen(["Xvfb", f":{n}", "-screen", "0", "1280x800x24", "-nolisten", "tcp", "-noreset"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 20
+    while not Path(f"/tmp/.X11-unix/X{n}").exists() and time.time() < deadline:
+        time.sleep(0.05)
+    yield f":{n}"
+    proc.terminate()
+    proc.wait()
+
+
+def test_real_window_session_typed_with_xdotool(xvfb, tiny_dataset, tmp_path):
+    env = dict(os.environ, DISPLAY=xvfb, PYTHONPATH=str(ROOT))
+    labels = tmp_path / "labels"
+    log = labels / "zoe.jsonl"
+    proc = subprocess.Popen([sys.executable, "-m", "labeling_tool.cli", "review", str(tiny_dataset),
+                             "--reviewer", "zoe", "--labels", str(labels), "--window-size", "1000x600"], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+    def xdo(*args):
+        return subprocess.run(["xdotool", *args], env=env, capture_output=True, text=True, timeout=60).stdout
+
+    def events():
+        return [json.loads(x) for x in log.read_text().splitlines()] if log.exists() else []
+
+    def key(k, expect):
+        xdo("key", "--window", window, k)
+        deadline = time.time() + 60
+        while len(events()) < expect and time.time() < deadline:
+            time.sleep(0.05)
+        assert len(events()) == expect, f"after {k}: {events()}"
+
+    try:
+        deadline, window = time.time() + 90, ""
+        while not window and proc.poll() is None and time.time() < deadline:
+            window = xdo("search", "--name", "label-tool review: zoe").strip()
+            time.sleep(0.2)
+        assert window, f"no window: {proc.poll()} {proc.stderr.read() if proc.poll() is not None else ''}"
+        window = window.split()[0]
+        xdo("windowfocus", "--sync", window)
+        key("4", 1)                 # 0 bad (blur)
+        key("g", 2)                 # 1 good
+        key("z", 3)                 # undo names subject 1
+        key("5", 4)                 # 1 bad (other)
+        key("t", 4)
+        key("Return", 5)            # 2 good
+        key("Escape", 5)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0 and "Traceback" not in err, err
+    assert "zoe: 3/3 reviewed" in out
+    assert [(e["subject"], e["action"], e["reasons"]) for e in events()] == [
+        (S0, "bad", ["blur"]), (S1, "good", []), (S1, "undo", []), (S1, "bad", ["other"]), (S2, "good", [])]
+    m = compile_manifest(tiny_dataset, labels)
+    assert {r["subject"]: r["verdict"] for r in m["subjects"]} == {S0: "rejected", S1: "rejected", S2: "accepted"}
