@@ -44,6 +44,8 @@ def merge(votes: dict[str, tuple[str, tuple]], policy: str, unreviewed: str, fla
 def compile_manifest(dataset, labels_dir, policy: str = "any-bad", unreviewed: str = "accept",
                      test_count: int | None = None, parent=None) -> dict:
     """Build the manifest dict (not written); see the module docstring."""
+    if test_count is not None and test_count < 0:
+        raise UserError(f"--test-count must be 0 or more, not {test_count}")
     if policy not in POLICIES:
         raise UserError(f"unknown policy {policy!r}; choose one of: {', '.join(POLICIES)}")
     if unreviewed not in UNREVIEWED:
@@ -71,6 +73,7 @@ def compile_manifest(dataset, labels_dir, policy: str = "any-bad", unreviewed: s
     accepted = [r for r in rows if r["verdict"] == "accepted"]
     if test_count is None:
         test_count = min(100, max(1, len(accepted) // 10)) if accepted else 0
+
     test = {r["subject"] for r in sorted(accepted, key=lambda r: subject_hash(r["subject"]))[:test_count]}
     for r in accepted:
         r["split"] = "test" if r["subject"] in test else "train"

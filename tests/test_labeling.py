@@ -235,6 +235,13 @@ def test_compile_is_deterministic_versioned_and_immutable(tiny_dataset, tmp_path
     assert "never edited" in capsys.readouterr().err and out1.read_bytes() == before
 
 
+def test_negative_test_count_is_refused(tiny_dataset, tmp_path, capsys):
+    out = tmp_path / "m" / "demo-v1.json"
+    assert label_main(["compile", str(tiny_dataset), "--labels", str(tmp_path / "none"), "--out", str(out),
+                       "--test-count", "-3"]) == 2
+    assert "--test-count must be 0 or more" in capsys.readouterr().err and not out.exists()
+
+
 def test_test_split_is_the_smallest_hashes(tiny_dataset, tmp_path):
     labels = tmp_path / "labels"
     labels.mkdir()
