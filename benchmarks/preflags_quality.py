@@ -1,6 +1,6 @@
 """Quality and speed of the automatic pre-flags against the procedural generator's injected defects.
 
-Thresholds in ``labeling_tool.preflags.Params`` were chosen on a tuning dataset (procedural, seed 0);
+Thresholds (each detector's ``Settings`` in ``labeling_tool/preflags/``) were chosen on a tuning dataset (procedural, seed 0);
 this benchmark reports precision / recall on a held-out dataset made the same way with a different
 seed (default 1), and, for reference, the same numbers on the tuning dataset when it is given.
 
@@ -17,6 +17,7 @@ false positive.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import io
 import json
 import os
@@ -190,7 +191,7 @@ def write_markdown(data: dict) -> str:
     lines = ["# Pre-flag quality on procedural injected defects", ""]
     lines += [f"Generated {data['when']} on {data['machine']}. Numbers are computed by "
               f"`benchmarks/preflags_quality.py`; rerun with:", "", "```", data["command"], "```", ""]
-    lines += ["Protocol: thresholds (`labeling_tool.preflags.Params`) were chosen on a **tuning** dataset made "
+    lines += ["Protocol: thresholds (each detector's `Settings` in `labeling_tool/preflags/`) were chosen on a **tuning** dataset made "
               f"with seed {a['tune_seed']}; the **held-out** numbers below come from a dataset made with seed "
               f"{a['seed']} (same settings: procedural, protocol 360, {a['subjects']} subjects, 32 views, "
               f"{a['resolution']} px, defect rate {a['defect_rate']}). The scorer never reads `truth/`; "
@@ -315,7 +316,7 @@ def main(argv=None) -> int:
             "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, Python {platform.python_version()}",
             "command": "python benchmarks/preflags_quality.py " + " ".join(
                 (f'"{a}"' if " " in a else a) for a in (argv if argv is not None else sys.argv[1:])),
-            "params": preflags.DEFAULT_PARAMS.__dict__, "generation": gen, "notes": args.note,
+            "params": {d.name: dataclasses.asdict(d.settings) for d in preflags.DETECTORS}, "generation": gen, "notes": args.note,
             "datasets": {"held_out": settings(held)}}
     s = data["datasets"]["held_out"]
     args.seed, args.resolution, args.subjects = s["seed"], s["resolution"], s["subjects"]

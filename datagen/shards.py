@@ -334,18 +334,32 @@ def read_fields(root, shard: int, key: str) -> dict:
         start, end = side["offsets"][key]
     except KeyError:
         raise DatasetError(f"{path}: no subject {key} in this shard") from None
+    return read_range(path, key, start, end)
+
+
+def read_range(path, key: str, start: int, end: int, wanted=None) -> dict:
+    """The fields {field: bytes} of subject ``key`` stored at bytes [start, end) of the tar ``path``.
+
+    ``wanted(field, fields_so_far)`` may skip fields (their bytes are not copied out). A range that
+    runs past the file or holds another subject is a DatasetError naming the file.
+    """
     try:
         with open(path, "rb") as f:
             f.seek(start)
             blob = f.read(end - start)
         if len(blob) != end - start:
             raise DatasetError(f"{path}: the byte range of {key} [{start}, {end}) runs past the end of the tar")
+        fields = {}
         with tarfile.open(fileobj=io.BytesIO(blob), mode="r:") as tar:
             members = [m for m in tar if m.isfile()]
             others = sorted({m.name.partition(".")[0] for m in members} - {key})
             if others or not members:
                 raise DatasetError(f"{path}: the byte range of {key} holds {others[:1] or 'no subject'}, not {key}")
-            return {m.name.partition(".")[2]: tar.extractfile(m).read() for m in members}
+            for m in members:
+                name = m.name.partition(".")[2]
+                if wanted is None or wanted(name, fields):
+                    fields[name] = tar.extractfile(m).read()
+        return fields
     except (tarfile.TarError, EOFError, OSError) as e:
         raise DatasetError(f"{path}: corrupt subject {key} ({e})") from None
 

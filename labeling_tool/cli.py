@@ -29,7 +29,10 @@ def build_parser() -> OneLineParser:
 
     a = sub.add_parser("auto", help="score every subject with automatic pre-flags (worst first)")
     a.add_argument("dataset")
-    a.add_argument("--workers", type=int, default=1)
+    a.add_argument("--workers", type=int, default=1, help="processes that read and measure subjects")
+    a.add_argument("--skip-incomplete", action="store_true",
+                   help="score the complete shards and list the others (default: a missing or incomplete shard "
+                        "is an error)")
     a.add_argument("--top", type=int, default=10, help="print the N worst subjects")
     a.add_argument("--quiet", action="store_true")
 
@@ -79,12 +82,9 @@ def build_queue(target: str, queue: str):
              if shard_only is None or sh["name"] == shard_only]
     if shard_only is not None and not items:
         raise UserError(f"{target}: not a shard of the dataset in {path}")
-    try:
-        from .preflags import read_preflags
+    from datagen.preflags import PREFLAGS_NAME, read_preflags
 
-        report = read_preflags(path)
-    except (FileNotFoundError, UserError):
-        report = None
+    report = read_preflags(path) if (path / PREFLAGS_NAME).exists() else None
     if report is None:
         if queue != "all":
             raise UserError(f"--queue {queue} needs pre-flags: run 'label-tool auto {path}' first")
@@ -103,12 +103,19 @@ def build_queue(target: str, queue: str):
 
 
 def _auto(args) -> int:
-    from .preflags import score_dataset, write_preflags
+    from datagen.preflags import write_preflags
 
-    report = score_dataset(args.dataset, progress=not args.quiet, workers=args.workers)
+    from .preflags import score_dataset
+
+    if args.workers < 1:
+        raise UserError("--workers must be at least 1")
+    report = score_dataset(args.dataset, progress=not args.quiet, workers=args.workers,
+                           skip_incomplete=args.skip_incomplete)
     path = write_preflags(args.dataset, report)
     flagged = [r for r in report["subjects"] if r["flags"]]
-    print(f"scored {len(report['subjects'])} subjects, {len(flagged)} flagged -> {path}")
+    skipped = report["summary"]["skipped_shards"]
+    print(f"scored {len(report['subjects'])} subjects, {len(flagged)} flagged -> {path}"
+          + (f"; SKIPPED {len(skipped)} incomplete shard(s): {', '.join(skipped[:5])}" if skipped else ""))
     for r in report["subjects"][: args.top]:
         why = "; ".join(r["detectors"][k]["why"] for k in r["flags"]) or "no flag"
         print(f"  {r['score']:.2f}  {r['subject']}  {why}")

@@ -12,6 +12,7 @@ from pathlib import Path
 from datagen.errors import UserError
 from datagen.files import atomic_write
 from datagen.manifests import FORMAT, read_manifest
+from datagen.preflags import is_stale, read_preflags
 from datagen.shards import dumps, index_sha256, read_index
 
 from datagen.events import read_logs, verdicts
@@ -115,8 +116,6 @@ def compile_manifest(dataset, labels_dir, policy: str = "any-bad", unreviewed: s
 def flagged_subjects(dataset, required: bool) -> set[str] | None:
     """Subjects the dataset's pre-flags (``label-tool auto``) flag; None when there are none or they are
     stale (made for another index.json), or a UserError when ``required``."""
-    from .preflags import is_stale, read_preflags
-
     try:
         report = read_preflags(dataset)
     except UserError as e:

@@ -24,13 +24,13 @@ def run(argv, capsys):
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["sample", "--out", "{tmp}/x", "--gan", "stylegan9"], "unknown generator 'stylegan9'"),
+    (["sample", "--out", "{tmp}/x", "--gan", "stylegan9"], "invalid choice: 'stylegan9'"),
     (["sample", "--out", "{tmp}/x", "--gan", "eg3d"], "needs --checkpoint PATH: EG3D checkpoints"),
     (["sample", "--out", "{tmp}/x", "--gan", "spherehead", "--checkpoint", "{tmp}/none.pkl"], "checkpoint not found"),
     (["sample", "--out", "{tmp}/x", "--gan", "eg3d", "--checkpoint", "{tmp}/afile"], "not a readable generator"),
     (["sample", "--out", "{tmp}/x", "--save-planes", "32"], "procedural generator has no planes"),
     (["sample", "--out", "{tmp}/x", "--gan", "procedural", "--background", "own"], "white, black, grey"),
-    (["sample", "--out", "{tmp}/x", "--protocol", "sideways"], "unknown protocol"),
+    (["sample", "--out", "{tmp}/x", "--protocol", "sideways"], "invalid choice: 'sideways'"),
     (["sample", "--out", "{tmp}/x", "--subjects", "0"], "--subjects must be at least 1"),
     (["sample", "--out", "{tmp}/x", "--subjects", "many"], "invalid int value"),
     (["sample", "--out", "{tmp}/x", "--resolution", "8"], "--resolution must be between"),

@@ -18,7 +18,7 @@ from datagen.events import EventLog, parse_event, read_log, read_logs, verdicts 
 from labeling_tool.gui import ReviewApp  # noqa: E402
 from datagen.manifests import read_manifest  # noqa: E402
 from labeling_tool.manifest import compile_manifest, subject_hash  # noqa: E402
-from labeling_tool.preflags import FORMAT as PREFLAGS_FORMAT, write_preflags  # noqa: E402
+from datagen.preflags import FORMAT as PREFLAGS_FORMAT, write_preflags  # noqa: E402
 from datagen.errors import UserError  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

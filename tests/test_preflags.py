@@ -16,10 +16,14 @@ import numpy as np
 import pytest
 from scipy import ndimage as ndi
 
+from datagen.errors import DatasetError
 from datagen.pipeline import JobSpec, run_sample, software_info
 from datagen.shards import FORMAT as DATASET_FORMAT, iter_tar_samples
 from datagen.shards import ShardWriter, SubjectSample, encode_subject, shard_name, subject_id
+from datagen import preflags as report_format
 from labeling_tool import preflags
+from labeling_tool.preflags.duplicate import nearest
+from labeling_tool.preflags.views import SubjectViews
 
 RES = 48
 VIEWS = 16
@@ -179,9 +183,16 @@ def renamed(s: SubjectSample, key: str) -> SubjectSample:
     return SubjectSample(key, dict(s.metadata, subject_id=key), s.rgb, s.alpha, s.depth, {})
 
 
+def views_of(s: SubjectSample) -> SubjectViews:
+    return SubjectViews.from_arrays(s.key, s.metadata, s.alpha, dict(enumerate(s.rgb)), dict(enumerate(s.depth)))
+
+
+def records(samples):
+    return [("shard-000000", preflags.measure_subject(views_of(s))) for s in samples]
+
+
 def score_samples(samples):
-    feats = [("shard-000000", preflags.subject_features(s)) for s in samples]
-    report = preflags.score_features({"index_sha256": "0" * 64, "features": feats, "seconds": 1.0})
+    report = preflags.score({"index_sha256": "0" * 64, "records": records(samples), "seconds": 1.0})
     return {s["subject"]: s for s in report["subjects"]}, report
 
 
@@ -277,10 +288,10 @@ def test_janus_not_applicable_without_back_views():
 
 
 def test_undecodable_subject_is_flagged_not_dropped(clean_heads):
-    feats = [("shard-000000", preflags.subject_features(s)) for s in clean_heads[:4]]
+    recs = records(clean_heads[:4])
     error = "x.tar: subject subj00000099 lacks field 'v00.png'"
-    feats.append(("shard-000000", preflags._failed_record("subj00000099", error)))
-    report = preflags.score_features({"index_sha256": "0" * 64, "features": feats, "seconds": 1.0})
+    recs.append(("shard-000000", {"key": "subj00000099", "error": error}))
+    report = preflags.score({"index_sha256": "0" * 64, "records": recs, "seconds": 1.0})
     assert report["subjects"][0]["subject"] == "subj00000099"
     assert report["subjects"][0]["flags"] == ["empty"]
     assert len(report["subjects"]) == 5
@@ -291,8 +302,8 @@ def test_duplicates_blocked_matches_dense():
     thumbs = [rng.normal(size=16).astype(np.float32) for _ in range(37)]
     thumbs[30] = thumbs[3] + 0.01
     thumbs[7] = None
-    small = preflags._duplicates(thumbs, preflags.Params(duplicate_block=5))
-    big = preflags._duplicates(thumbs, preflags.Params(duplicate_block=4096))
+    small = nearest(thumbs, 5)
+    big = nearest(thumbs, 4096)
     np.testing.assert_allclose(small[0], big[0], rtol=1e-5)
     assert list(small[1]) == list(big[1])
     assert small[1][30] == 3 and small[1][3] == 30 and small[1][7] == -1
@@ -391,24 +402,36 @@ def test_truth_folder_is_never_read(synthetic_dataset, tmp_path, monkeypatch):
     assert strip_timing(preflags.score_dataset(copy)) == strip_timing(before)
 
 
-def test_fast_reader_matches_tarfile(synthetic_dataset):
-    path = synthetic_dataset / "shard-000000.tar"
-    want = lambda field, fields: True  # noqa: E731
-    fast = list(preflags._subject_groups_fast(path, want))
-    slow = list(iter_tar_samples(path, want))
-    assert [k for k, _ in fast] == [k for k, _ in slow]
-    for (_, a), (_, b) in zip(fast, slow):
-        assert a == b
+def test_workers_read_subjects_by_byte_range(synthetic_dataset):
+    """What a worker reads through the sidecar's byte range equals a full scan of the tar."""
+    tasks, skipped = preflags.pipeline.plan(synthetic_dataset)
+    assert skipped == [] and len(tasks) == 19
+    scanned = {}
+    for i in range(3):
+        scanned.update(dict(iter_tar_samples(synthetic_dataset / f"shard-00000{i}.tar")))
+    for shard, tar, key, start, end in tasks:
+        from datagen.shards import read_range
+        assert read_range(tar, key, start, end) == scanned[key]
+
+
+def test_incomplete_shards_are_named_not_skipped(synthetic_dataset, tmp_path):
+    root = tmp_path / "ds"
+    shutil.copytree(synthetic_dataset, root)
+    (root / "shard-000001.json").unlink()
+    with pytest.raises(DatasetError, match=r"shard-000001.tar: incomplete \(no sidecar\).*--skip-incomplete"):
+        preflags.score_dataset(root)
+    report = preflags.score_dataset(root, skip_incomplete=True)
+    assert report["summary"]["skipped_shards"] == ["shard-000001"] and len(report["subjects"]) == 12
 
 
 def test_write_read_atomic(synthetic_dataset, tmp_path, monkeypatch):
     root = tmp_path / "ds"
     shutil.copytree(synthetic_dataset, root)
     report = preflags.score_dataset(root)
-    path = preflags.write_preflags(root, report)
+    path = report_format.write_preflags(root, report)
     assert path == root / "preflags.json"
-    assert preflags.read_preflags(root) == json.loads(json.dumps(report))
-    assert not preflags.is_stale(root, report)
+    assert report_format.read_preflags(root) == json.loads(json.dumps(report))
+    assert not report_format.is_stale(root, report)
     assert not [p.name for p in root.iterdir() if ".tmp" in p.name]
     old = path.read_bytes()
 
@@ -418,15 +441,15 @@ def test_write_read_atomic(synthetic_dataset, tmp_path, monkeypatch):
     monkeypatch.setattr(os, "replace", boom)
     changed = dict(report, subjects=report["subjects"][:1])
     with pytest.raises(OSError):
-        preflags.write_preflags(root, changed)
+        report_format.write_preflags(root, changed)
     monkeypatch.undo()
     assert path.read_bytes() == old                       # the old file is untouched
     assert not [p.name for p in root.iterdir() if ".tmp" in p.name]
     other = tmp_path / "elsewhere.json"
-    preflags.write_preflags(root, report, path=other)
-    assert preflags.read_preflags(root, path=other)["subjects"] == preflags.read_preflags(root)["subjects"]
+    report_format.write_preflags(root, report, path=other)
+    assert report_format.read_preflags(root, path=other)["subjects"] == report_format.read_preflags(root)["subjects"]
     (root / "index.json").write_text((root / "index.json").read_text() + " ")
-    assert preflags.is_stale(root, report)
+    assert report_format.is_stale(root, report)
 
 
 def test_procedural_dataset_end_to_end(tmp_path):

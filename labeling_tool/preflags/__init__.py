@@ -1,0 +1,28 @@
+"""Automatic pre-flags: cheap, explainable per-subject scores so reviewers see the worst subjects first.
+
+Each detector (one module each; ``registry.DETECTORS`` lists them in report order) gives every subject
+a score in [0, 1] (0.5 and above means flagged) and a short explanation naming the view and the number
+it measured. Scores only order the review queue; nothing is deleted.
+
+    janus        a face on the back of the head (back view against the front view)
+    floaters     silhouette parts detached from the head
+    holes        see-through holes in the silhouette and craters in the depth
+    washed_out   low saturation and lifted dark tones
+    blur         soft silhouette edges
+    empty        (almost) empty views, subjects that do not decode
+    implausible  mask area or depth far from the dataset
+    duplicate    near-duplicates of another subject
+
+    from labeling_tool.preflags import score_dataset
+    from datagen.preflags import write_preflags
+    write_preflags("/data/heads", score_dataset("/data/heads", progress=True, workers=2))
+
+The report format is described in ``datagen.preflags``; ``label-tool auto`` is the command line.
+"""
+from .detector import FLAG_AT, Detector, Flag
+from .pipeline import extract, measure_subject, score, score_dataset
+from .registry import DETECTOR_NAMES, DETECTORS
+from .views import SubjectViews
+
+__all__ = ["DETECTORS", "DETECTOR_NAMES", "FLAG_AT", "Detector", "Flag", "SubjectViews", "extract",
+           "measure_subject", "score", "score_dataset"]

@@ -1,0 +1,89 @@
+"""blur: soft silhouette edges.
+
+The colour image's gradient energy across the silhouette against a sharp cut-out composed from the
+same view's mask, relative to the dataset (content-independent); interior detail (Laplacian over grey
+variance) is reported alongside.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage as ndi
+
+from .detector import Detector, Flag
+from .imaging import nearest_fill, ramp, robust
+
+
+def edge_sharpness(rgb, alpha) -> float:
+    """log of the grey gradient energy across the silhouette over that of a sharp composite (alpha *
+    inside colour + (1 - alpha) * background) built from the same view: about 0 when the colour image
+    is as sharp as its mask, negative when it is blurred. NaN when there is too little edge."""
+    a = alpha.astype(np.float64) / 255.0
+    g = rgb.astype(np.float64).mean(-1) / 255.0
+    m = a > 0.5
+    if m.sum() < 30 or (~m).sum() < 30:
+        return float("nan")
+    outside = a < 0.01
+    bg = float(np.median(g[outside])) if outside.any() else 1.0
+    full = ndi.binary_erosion(a > 0.99, iterations=1)
+    if not full.any():
+        return float("nan")
+    inside = nearest_fill(np.where(full, g, 0.0), full)
+    sharp = a * inside + (1.0 - a) * bg
+    band = ndi.binary_dilation(m, iterations=2) & ~ndi.binary_erosion(m, iterations=2)
+    e_img = np.hypot(ndi.sobel(g, 0), ndi.sobel(g, 1))[band]
+    e_ref = np.hypot(ndi.sobel(sharp, 0), ndi.sobel(sharp, 1))[band]
+    keep = e_ref > 0.1
+    if keep.sum() < 10:
+        return float("nan")
+    return float(np.log((e_img[keep] ** 2).mean() / (e_ref[keep] ** 2).mean()))
+
+
+class Blur(Detector):
+    name = "blur"
+    description = ("soft silhouette edges: -z (against the dataset) of the log ratio of gradient energy across the "
+                   "silhouette to that of a sharp cut-out from the same mask")
+
+    @dataclass(frozen=True)
+    class Settings:
+        z: float = 6.0             # -z of the silhouette edge sharpness (log gradient-energy ratio)
+        z_sat: float = 15.0
+        edge_floor: float = 0.02   # scale floor of that log ratio
+
+    def threshold(self):
+        return self.settings.z
+
+    def measure(self, v):
+        edges, detail = [], []
+        for _, i in v.eq_used:
+            edges.append(edge_sharpness(v.rgb[i], v.alpha[i]))
+            c, m, _ = v.work[i]
+            grey = c.mean(-1)
+            inner = ndi.binary_erosion(m, iterations=max(1, int(round(2 * v.s))))
+            if inner.sum() >= 16:
+                lap = ndi.laplace(nearest_fill(grey, m))
+                gv = float(grey[inner].var())
+                detail.append(float(np.log((lap[inner].var() + 1e-12) / (gv + 1e-12))) if gv > 1e-8 else np.nan)
+        edges = [x for x in edges if np.isfinite(x)]
+        detail = [x for x in detail if np.isfinite(x)]
+        return {"edge": float(np.median(edges)) if edges else np.nan,
+                "detail": float(np.median(detail)) if detail else np.nan}
+
+    def baseline(self, measured):
+        ok = [m for m in measured if m]
+        return {"edge": robust([m["edge"] for m in ok if np.isfinite(m["edge"])], self.settings.edge_floor),
+                "detail": robust([m["detail"] for m in ok if np.isfinite(m["detail"])], 0.05)}
+
+    def score(self, m, base, index, keys):
+        detail = (f"; interior detail {math.exp(m['detail'] - base['detail'][0]):.2f}x the dataset median"
+                  if np.isfinite(m["detail"]) else "")
+        if not np.isfinite(m["edge"]):
+            return Flag(0.0, "no usable silhouette edge to measure" + detail)
+        med, scale = base["edge"]
+        z = -(m["edge"] - med) / scale
+        t = self.settings
+        return Flag(ramp(z, t.z, t.z_sat),
+                    f"silhouette edges carry {100 * math.exp(m['edge']):.0f}% of the gradient energy of a sharp "
+                    f"cut-out (dataset median {100 * math.exp(med):.0f}%); z {-z:.1f} (flag at -{t.z:g}){detail}", z)

@@ -1,0 +1,97 @@
+"""Image helpers the pre-flag detectors share: robust statistics, score ramps, masks and depth filters.
+
+Images are at the working resolution (about ``WORK_RES`` px, see ``views.py``); ``s`` is the number of
+working pixels per pixel at 64 px, so sizes written for 64 px scale with the image.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import ndimage as ndi
+
+
+def ramp(m: float, t: float, s: float) -> float:
+    """Measure -> score: 0 at m <= 0, 0.5 at the threshold t, 1 at the saturation s."""
+    if m is None or not math.isfinite(m) or m <= 0:
+        return 0.0
+    if m < t:
+        return 0.5 * m / t
+    return float(min(1.0, 0.5 + 0.5 * (m - t) / max(s - t, 1e-12)))
+
+
+def robust(values, floor: float) -> tuple[float, float]:
+    """(median, 1.4826 * MAD) of the finite values, the scale at least ``floor``."""
+    x = np.asarray([v for v in values if v is not None], dtype=np.float64)
+    x = x[np.isfinite(x)]
+    if x.size == 0:
+        return 0.0, floor
+    med = float(np.median(x))
+    return med, max(float(1.4826 * np.median(np.abs(x - med))), floor)
+
+
+def robust_tail(values, floor: float) -> tuple[float, float]:
+    """(median, scale) where the scale is the larger of 1.4826 * MAD and the spread up to the 90th
+    percentile (as a normal's sigma): a feature that a minority of subjects has naturally (e.g. a cap's
+    brim seen from the front) widens the scale instead of looking like an outlier."""
+    med, scale = robust(values, floor)
+    x = np.asarray(values, dtype=np.float64)
+    x = x[np.isfinite(x)]
+    if x.size:
+        scale = max(scale, float(np.quantile(x, 0.9) - med) / 1.2816)
+    return med, scale
+
+
+def wrap(deg):
+    """Angle difference folded into [-180, 180)."""
+    return (np.asarray(deg, dtype=np.float64) + 180.0) % 360.0 - 180.0
+
+
+def nearest_fill(x: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Outside the mask, the value of the nearest pixel inside (so filters see no silhouette step)."""
+    if mask.all() or not mask.any():
+        return x
+    idx = ndi.distance_transform_edt(~mask, return_distances=False, return_indices=True)
+    return x[idx[0], idx[1]]
+
+
+def bbox(mask: np.ndarray):
+    rows = np.nonzero(mask.any(1))[0]
+    cols = np.nonzero(mask.any(0))[0]
+    return rows[0], rows[-1], cols[0], cols[-1]
+
+
+def downsample(rgb, alpha, depth, k: int):
+    """Working-resolution float images: rgb (h,w,3) in [0,1], mask (h,w) bool, depth (h,w) (masked mean)."""
+    a = alpha.astype(np.float32) / 255.0
+    c = rgb.astype(np.float32) / 255.0
+    d = np.nan_to_num(np.asarray(depth, dtype=np.float32))
+    if k > 1:
+        h, w = (a.shape[0] // k) * k, (a.shape[1] // k) * k
+        def pool(x):
+            x = x[:h, :w]
+            return x.reshape(h // k, k, w // k, k, *x.shape[2:]).mean(axis=(1, 3))
+        wsum = pool(a)
+        d = pool(d * a) / np.maximum(wsum, 1e-6)
+        c = pool(c)
+        a = wsum
+    return c, a > 0.5, d
+
+
+def blob_response(depth: np.ndarray, sigma: float, sign: float) -> np.ndarray:
+    """Scale-normalised determinant-of-Hessian blob strength of depth (depth units).
+
+    sign=-1: depth maxima (depressions seen from the camera); sign=+1: depth minima (bumps)."""
+    lxx = ndi.gaussian_filter(depth, sigma, order=(0, 2))
+    lyy = ndi.gaussian_filter(depth, sigma, order=(2, 0))
+    lxy = ndi.gaussian_filter(depth, sigma, order=(1, 1))
+    det = (lxx * lyy - lxy * lxy) * sigma ** 4
+    ok = (sign * lxx > 0) & (sign * lyy > 0) & (det > 0)
+    return np.where(ok, np.sqrt(np.maximum(det, 0.0)), 0.0)
+
+
+def central(mask, x0=0.3, x1=0.7, y0=0.3, y1=0.8):
+    top, bot, left, right = bbox(mask)
+    yy, xx = np.mgrid[:mask.shape[0], :mask.shape[1]]
+    return (mask & (yy >= top + y0 * (bot - top)) & (yy <= top + y1 * (bot - top))
+            & (xx >= left + x0 * (right - left)) & (xx <= left + x1 * (right - left)))

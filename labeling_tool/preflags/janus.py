@@ -1,0 +1,136 @@
+"""janus: a second face on the back of the head.
+
+The back view (yaw ~180) is compared with the front view (yaw ~0, as is and mirrored) on edge
+structure and on the colour layout of the face region, and searched for a nose-like depth bump where
+the front view has its nose; the score is the mean of the three robust z-scores against the dataset.
+Not applicable (score 0) without a back view, e.g. in the ``frontal`` protocol.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage as ndi
+
+from datagen.shards import view_name
+
+from .detector import Detector, Flag
+from .imaging import blob_response, central, nearest_fill, ramp, robust
+from .views import BACK_TOL
+
+
+def edge_ncc(a_grey, a_mask, b_grey, b_mask, s: float) -> float:
+    """Best normalised correlation of Sobel edge magnitude inside both (eroded) masks over small shifts."""
+    ga = np.hypot(ndi.sobel(a_grey, 0), ndi.sobel(a_grey, 1))
+    gb = np.hypot(ndi.sobel(b_grey, 0), ndi.sobel(b_grey, 1))
+    it = max(1, int(round(2 * s)))
+    ia = ndi.binary_erosion(a_mask, iterations=it)
+    ib = ndi.binary_erosion(b_mask, iterations=it)
+    sh = max(1, int(round(3 * s)))
+    best = -1.0
+    for dy in range(-sh, sh + 1):
+        for dx in range(-sh, sh + 1):
+            gbs = np.roll(gb, (dy, dx), (0, 1))
+            m = ia & np.roll(ib, (dy, dx), (0, 1))
+            if m.sum() < 20:
+                continue
+            x = ga[m] - ga[m].mean()
+            y = gbs[m] - gbs[m].mean()
+            den = math.sqrt(float((x * x).sum() * (y * y).sum()))
+            if den > 0:
+                best = max(best, float((x * y).sum() / den))
+    return best
+
+
+def colour_ncc(back_c, front_c, region, s: float) -> float:
+    """Best normalised correlation of colour (channels centred separately) over the region, shifting the
+    front view (and the region with it) by a few px."""
+    sh = max(1, int(round(3 * s)))
+    best = -1.0
+    for dy in range(-sh, sh + 1):
+        for dx in range(-sh, sh + 1):
+            r = np.roll(region, (dy, dx), (0, 1))
+            if r.sum() < 20:
+                continue
+            x = back_c[r]
+            y = np.roll(front_c, (dy, dx), (0, 1))[r]
+            x = x - x.mean(0)
+            y = y - y.mean(0)
+            den = math.sqrt(float((x * x).sum() * (y * y).sum()))
+            if den > 0:
+                best = max(best, float((x * y).sum() / den))
+    return best
+
+
+def face_evidence(front, back, s: float):
+    """Face evidence in a back view: (edge similarity, colour similarity in the face region, nose-bump
+    strength), each against the front view as is and mirrored."""
+    (fc, fm, fd), (bc, bm, bd) = front, back
+    fg, bg = fc.mean(-1), bc.mean(-1)
+    sim = max(edge_ncc(bg, bm, fg, fm, s), edge_ncc(bg, bm, fg[:, ::-1], fm[:, ::-1], s))
+    it2 = max(1, int(round(2 * s)))
+    face = (central(ndi.binary_erosion(fm, iterations=it2), 0.25, 0.75, 0.3, 0.85)
+            & ndi.binary_erosion(bm, iterations=it2))
+    colour = max(colour_ncc(bc, fc, face, s), colour_ncc(bc, fc[:, ::-1], face[:, ::-1], s)) if face.any() else -1.0
+    it = max(1, int(round(3 * s)))
+    f_inner = ndi.binary_erosion(fm, iterations=it)
+    b_inner = ndi.binary_erosion(bm, iterations=it)
+    if not f_inner.any() or not b_inner.any():
+        return sim, colour, 0.0
+    sig = 1.0 * s
+    fb = np.where(central(f_inner), blob_response(nearest_fill(fd.astype(np.float64), fm), sig, +1.0), 0.0)
+    bb = np.where(b_inner, blob_response(nearest_fill(bd.astype(np.float64), bm), sig, +1.0), 0.0)
+    y, x = np.unravel_index(int(np.argmax(fb)), fb.shape)
+    w = max(1, int(round(2 * s)))
+    relief = 0.0
+    for xx in (x, fb.shape[1] - 1 - x):
+        win = bb[max(y - w, 0):y + w + 1, max(xx - w, 0):xx + w + 1]
+        if win.size:
+            relief = max(relief, float(win.max()))
+    return sim, colour, relief
+
+
+class Janus(Detector):
+    name = "janus"
+    description = ("a face on the back of the head: back view vs front view (edge correlation and face-region "
+                   "colour correlation, as is and mirrored) and a nose-like depth bump where the front has its "
+                   "nose; mean of the three robust z-scores against the dataset; n/a without a back view")
+
+    @dataclass(frozen=True)
+    class Settings:
+        z: float = 1.5          # mean of the edge, face-colour and nose-bump robust z-scores
+        z_sat: float = 4.0
+
+    def threshold(self):
+        return self.settings.z
+
+    def measure(self, v):
+        front, back = v.front, v.back
+        if back is None or front is None:
+            return {"na": f"not applicable: no {'back' if back is None else 'front'} view (|yaw - "
+                          f"{180 if back is None else 0}| and |pitch| <= {BACK_TOL:g}) among this subject's cameras"}
+        if front not in v.work or back not in v.work or v.work[front][1].sum() < 30 or v.work[back][1].sum() < 30:
+            return {"na": "not measured: the front or back view is (almost) empty"}
+        sim, colour, relief = face_evidence(v.work[front], v.work[back], v.s)
+        return {"back": back, "front": front, "sim": sim, "colour": colour, "relief": relief}
+
+    def baseline(self, measured):
+        jan = [m for m in measured if m and "na" not in m]
+        return {"sim": robust([j["sim"] for j in jan], 0.05), "colour": robust([j["colour"] for j in jan], 0.05),
+                "relief": robust([math.log(j["relief"] + 1e-4) for j in jan], 0.05)}
+
+    def score(self, j, base, index, keys):
+        if j is None or "na" in j:
+            return Flag(0.0, j["na"] if j else "not measured")
+        zs = (j["sim"] - base["sim"][0]) / base["sim"][1]
+        zc = (j["colour"] - base["colour"][0]) / base["colour"][1]
+        zr = (math.log(j["relief"] + 1e-4) - base["relief"][0]) / base["relief"][1]
+        m = (zs + zc + zr) / 3.0
+        t = self.settings
+        return Flag(ramp(m, t.z, t.z_sat),
+                    f"back view {view_name(j['back'])} vs front {view_name(j['front'])}: edge corr "
+                    f"{j['sim']:.2f} (dataset median {base['sim'][0]:.2f}), face-colour corr "
+                    f"{j['colour']:.2f} (median {base['colour'][0]:.2f}), nose-like bump "
+                    f"{j['relief']:.4f} (median {math.exp(base['relief'][0]) - 1e-4:.4f}); z {m:.1f} (flag at {t.z:g})",
+                    m)

@@ -1,0 +1,165 @@
+"""Scoring a dataset: one pass that measures every subject, then the dataset baselines and the scores.
+
+The parent reads ``index.json`` and the sidecars (each subject's byte range); workers read and decode
+the subjects they are given themselves, so no image bytes pass between processes. Every detector
+measures each subject once (a small record); baselines and scores are then computed from the
+records without decoding again.
+"""
+from __future__ import annotations
+
+import multiprocessing as mp
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from datagen.errors import DatasetError
+from datagen.preflags import FORMAT
+from datagen.shards import index_sha256, read_index, read_sidecar, shard_index, tar_path
+
+from .detector import FLAG_AT
+from .registry import DETECTORS
+from .views import SubjectViews
+
+
+def _failed(key: str, error: str) -> dict:
+    return {"key": key, "error": error}
+
+
+def measure_subject(views: SubjectViews, detectors=DETECTORS) -> dict:
+    """The record of one subject: its key and every detector's measurement."""
+    return {"key": views.key, "n_views": views.n, "resolution": views.resolution,
+            "protocol": views.meta.get("protocol"), "measured": {d.name: d.measure(views) for d in detectors}}
+
+
+def _measure(task):
+    """Worker: (shard, tar, key, start, end, detectors) -> (shard, record); a failure is a record too."""
+    shard, tar, key, start, end, detectors = task
+    try:
+        return shard, measure_subject(SubjectViews.read(tar, key, start, end), detectors)
+    except DatasetError as e:
+        return shard, _failed(key, str(e))
+    except Exception as e:  # a detector crashing on odd input must not stop the whole dataset
+        return shard, _failed(key, f"{tar}: subject {key}: measuring failed ({type(e).__name__}: {e})")
+
+
+def plan(root, skip_incomplete: bool = False) -> tuple[list, list]:
+    """(tasks without detectors, names of skipped shards) for every subject of the complete shards.
+
+    A shard that is missing, incomplete or whose sidecar cannot be read is a DatasetError naming it,
+    unless ``skip_incomplete`` (then it is listed as skipped).
+    """
+    root = Path(root)
+    tasks, skipped = [], []
+    for shard in read_index(root)["shards"]:
+        i = shard_index(shard["name"])
+        tar = tar_path(root, i)
+        side = read_sidecar(root, i, strict=True)
+        problem = (f"{tar}: missing" if not tar.exists() else
+                   f"{tar}: incomplete (no sidecar)" if side is None else
+                   f"{tar}: size differs from its sidecar" if tar.stat().st_size != side["tar_bytes"] else None)
+        if problem:
+            if not skip_incomplete:
+                raise DatasetError(f"{problem}; its subjects cannot be scored (finish the dataset with 'datagen "
+                                   "sample ... --resume', or pass --skip-incomplete)")
+            skipped.append(shard["name"])
+            continue
+        for key in shard["subjects"]:
+            if key not in side["offsets"]:
+                raise DatasetError(f"{tar}: the sidecar has no byte range for {key}")
+            start, end = side["offsets"][key]
+            tasks.append((shard["name"], str(tar), key, start, end))
+    return tasks, skipped
+
+
+def extract(root, workers: int = 1, progress: bool = False, detectors=DETECTORS,
+            skip_incomplete: bool = False) -> dict:
+    """First pass: {"index_sha256", "records": [(shard, record), ...] in index order, "skipped_shards",
+    "seconds"}."""
+    t0 = time.perf_counter()
+    tasks, skipped = plan(root, skip_incomplete)
+    tasks = [t + (detectors,) for t in tasks]
+    bar = _bar(len(tasks)) if progress else None
+    if workers > 1 and len(tasks) > 1:
+        ctx = mp.get_context("fork") if "fork" in mp.get_all_start_methods() else mp.get_context()
+        with ctx.Pool(workers) as pool:
+            records = []
+            for r in pool.imap(_measure, tasks, chunksize=4):
+                records.append(r)
+                if bar is not None:
+                    bar.update(1)
+    else:
+        records = []
+        for t in tasks:
+            records.append(_measure(t))
+            if bar is not None:
+                bar.update(1)
+    if bar is not None:
+        bar.close()
+    return {"index_sha256": index_sha256(root), "records": records, "skipped_shards": skipped,
+            "seconds": time.perf_counter() - t0}
+
+
+def _bar(total: int):
+    try:
+        from tqdm import tqdm
+    except ImportError:
+        return None
+    return tqdm(total=total, unit="subj", desc="preflags", file=sys.stderr)
+
+
+def score(extracted: dict, detectors=DETECTORS) -> dict:
+    """Second step: every detector's baseline from the records, then the report (worst first)."""
+    pairs = extracted["records"]
+    records = [r for _, r in pairs]
+    keys = [r["key"] for r in records]
+    ok = ["error" not in r for r in records]
+    bases = {d.name: d.baseline([r["measured"][d.name] if good else None for r, good in zip(records, ok)])
+             for d in detectors}
+    names = [d.name for d in detectors]
+    subjects = []
+    for idx, (shard, r) in enumerate(pairs):
+        dets = {}
+        for d in detectors:
+            if "error" in r:
+                flag = {"score": 1.0, "why": f"does not decode: {r['error']}"} if d.name == "empty" else \
+                    {"score": 0.0, "why": "not measured (subject does not decode)"}
+            else:
+                f = d.score(r["measured"][d.name], bases[d.name], idx, keys)
+                flag = {"score": round(float(min(1.0, max(0.0, f.score))), 4), "why": f.why}
+                if f.value is not None and np.isfinite(f.value):
+                    flag["value"] = round(float(f.value), 4)
+            dets[d.name] = flag
+        top = max(f["score"] for f in dets.values())
+        subjects.append({"subject": r["key"], "shard": shard, "score": top,
+                         "flags": [n for n in names if dets[n]["score"] >= FLAG_AT], "detectors": dets})
+    subjects.sort(key=lambda s: (-s["score"], -len(s["flags"]), s["subject"]))
+    n = len(subjects)
+    secs = extracted.get("seconds")
+    return {
+        "format": FORMAT,
+        "dataset_index_sha256": extracted["index_sha256"],
+        "detectors": {d.name: d.header() for d in detectors},
+        "summary": {"subjects": n, "flagged": sum(1 for s in subjects if s["flags"]),
+                    "per_detector": {name: sum(1 for s in subjects if name in s["flags"]) for name in names},
+                    "skipped_shards": list(extracted.get("skipped_shards", []))},
+        "timing": {"seconds": round(secs, 3) if secs is not None else None,
+                   "subjects_per_second": round(n / secs, 2) if secs else None},
+        "subjects": subjects,
+    }
+
+
+def score_dataset(root, progress: bool = False, workers: int = 1, detectors=DETECTORS,
+                  skip_incomplete: bool = False) -> dict:
+    """Score every subject of the dataset at ``root``; returns the report (subjects sorted worst first)."""
+    t0 = time.perf_counter()
+    extracted = extract(root, max(1, int(workers)), progress, detectors, skip_incomplete)
+    report = score(extracted, detectors)
+    total = time.perf_counter() - t0
+    n = report["summary"]["subjects"]
+    report["timing"] = {"extract_seconds": round(extracted["seconds"], 3), "total_seconds": round(total, 3),
+                        "subjects_per_second": round(n / total, 2) if total > 0 else None,
+                        "workers": max(1, int(workers))}
+    return report
+
