@@ -30,6 +30,9 @@ def build_parser() -> OneLineParser:
     a = sub.add_parser("auto", help="score every subject with automatic pre-flags (worst first)")
     a.add_argument("dataset")
     a.add_argument("--workers", type=int, default=1, help="processes that read and measure subjects")
+    a.add_argument("--learn", metavar="LABELS",
+                   help="re-rank the unreviewed subjects with a classifier fitted on the verdicts in this folder of "
+                        "event logs (after about 20 or more verdicts with both good and bad ones)")
     a.add_argument("--skip-incomplete", action="store_true",
                    help="score the complete shards and list the others (default: a missing or incomplete shard "
                         "is an error)")
@@ -96,7 +99,8 @@ def build_queue(target: str, queue: str):
             it.score = r["score"]
             it.flags = tuple(sorted(((k, r["detectors"][k]["score"]) for k in r["flags"]), key=lambda f: -f[1]))
     if queue in ("worst", "suspicious"):
-        items.sort(key=lambda it: -(it.score or 0.0))
+        rank = {r["subject"]: r.get("rank", r["score"]) for r in report["subjects"]}
+        items.sort(key=lambda it: -rank.get(it.subject, 0.0))
     if queue == "suspicious":
         items = [it for it in items if it.flags]
     return path, items
@@ -110,10 +114,16 @@ def _auto(args) -> int:
     if args.workers < 1:
         raise UserError("--workers must be at least 1")
     report = score_dataset(args.dataset, progress=not args.quiet, workers=args.workers,
-                           skip_incomplete=args.skip_incomplete)
+                           skip_incomplete=args.skip_incomplete, labels=args.learn)
     path = write_preflags(args.dataset, report)
     flagged = [r for r in report["subjects"] if r["flags"]]
     skipped = report["summary"]["skipped_shards"]
+    learned = report.get("learned")
+    if learned:
+        cv = learned.get("cross_validated_auc")
+        print(f"learned from {learned['verdicts']} verdicts ({learned['bad']} bad): " +
+              (f"unreviewed subjects re-ranked (cross-validated AUC {cv:.2f})" if learned["used"] and cv is not None
+               else "unreviewed subjects re-ranked" if learned["used"] else learned["why"]))
     print(f"scored {len(report['subjects'])} subjects, {len(flagged)} flagged -> {path}"
           + (f"; SKIPPED {len(skipped)} incomplete shard(s): {', '.join(skipped[:5])}" if skipped else ""))
     for r in report["subjects"][: args.top]:

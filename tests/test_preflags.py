@@ -463,3 +463,58 @@ def test_procedural_dataset_end_to_end(tmp_path):
     assert all(0 <= s["score"] <= 1 for s in report["subjects"])
     shutil.rmtree(root / "truth")
     assert strip_timing(preflags.score_dataset(root)) == strip_timing(report)
+
+
+# ----------------------------------------------------------------------------------------------
+# Learning from reviewers
+
+def _report(n=120, seed=0):
+    """A report whose bad subjects carry a weak signal in one detector's value, below any flag."""
+    rng = np.random.default_rng(seed)
+    bad = rng.random(n) < 0.25
+    subjects = []
+    for i in range(n):
+        v = rng.normal(1.0 if bad[i] else 0.0, 0.5)
+        subjects.append({"subject": f"subj{i:08d}", "shard": "shard-000000", "score": 0.2, "flags": [],
+                         "detectors": {"washed_out": {"score": 0.2, "why": "", "value": float(v)},
+                                       "blur": {"score": float(rng.random() * 0.4), "why": ""}}})
+    return {"detectors": {"washed_out": {}, "blur": {}}, "subjects": subjects}, bad
+
+
+def test_learned_rank_puts_what_reviewers_reject_first():
+    from labeling_tool.preflags.learn import learn_ranking
+    report, bad = _report()
+    labels = {s["subject"]: int(b) for s, b in list(zip(report["subjects"], bad))[:60]}
+    learn_ranking(report, labels)
+    assert report["learned"]["used"] and report["learned"]["cross_validated_auc"] > 0.8
+    rest = [(s["rank"], b) for s, b in list(zip(report["subjects"], bad))[60:]]
+    ranked = [b for _, b in sorted(rest, key=lambda t: -t[0])]
+    k = sum(ranked)
+    assert sum(ranked[:k]) / k > 0.6  # far above the 25 % an unranked queue would give
+    assert report["learned"]["strongest"][0]["feature"].startswith("washed_out.value")
+
+
+def test_too_few_verdicts_learn_nothing():
+    from labeling_tool.preflags.learn import learn_ranking
+    report, bad = _report()
+    learn_ranking(report, {report["subjects"][0]["subject"]: 1})
+    assert not report["learned"]["used"] and all(s["rank"] == s["score"] for s in report["subjects"])
+
+
+def test_auto_learn_from_event_logs(synthetic_dataset, tmp_path, capsys):
+    from datagen.events import EventLog
+    from labeling_tool.cli import main as label_main
+    root = tmp_path / "ds"
+    shutil.copytree(synthetic_dataset, root)
+    labels = tmp_path / "labels"
+    log = EventLog(labels, "ann")
+    for i in range(16):
+        log.append(subject_id(i), "shard-000000", "good")
+    log.append("subj00000100", "shard-000002", "bad", ("artifacts",))
+    log.append("subj00000101", "shard-000002", "bad", ("artifacts",))
+    log.close()
+    assert label_main(["auto", str(root), "--learn", str(labels), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "learned from 18 verdicts (2 bad): needs at least 20 verdicts" in out
+    report = report_format.read_preflags(root)
+    assert report["learned"]["verdicts"] == 18 and all("rank" in s for s in report["subjects"])

@@ -19,6 +19,7 @@ from datagen.preflags import FORMAT
 from datagen.shards import index_sha256, read_index, read_sidecar, shard_index, tar_path
 
 from .detector import FLAG_AT
+from .learn import learn_from
 from .registry import DETECTORS
 from .views import SubjectViews
 
@@ -151,11 +152,19 @@ def score(extracted: dict, detectors=DETECTORS) -> dict:
 
 
 def score_dataset(root, progress: bool = False, workers: int = 1, detectors=DETECTORS,
-                  skip_incomplete: bool = False) -> dict:
-    """Score every subject of the dataset at ``root``; returns the report (subjects sorted worst first)."""
+                  skip_incomplete: bool = False, labels=None) -> dict:
+    """Score every subject of the dataset at ``root``; returns the report (subjects sorted worst first).
+
+    ``labels``: a folder of reviewers' event logs; the queue's ``rank`` then learns from their
+    verdicts (``learn.py``).
+    """
     t0 = time.perf_counter()
     extracted = extract(root, max(1, int(workers)), progress, detectors, skip_incomplete)
     report = score(extracted, detectors)
+    if labels is not None:
+        thumbs = {r["key"]: (r["measured"].get("duplicate") or {}).get("thumb")
+                  for _, r in extracted["records"] if "error" not in r}
+        learn_from(report, labels, [thumbs.get(s["subject"]) for s in report["subjects"]])
     total = time.perf_counter() - t0
     n = report["summary"]["subjects"]
     report["timing"] = {"extract_seconds": round(extracted["seconds"], 3), "total_seconds": round(total, 3),
