@@ -223,7 +223,7 @@ def read_photo(src) -> Photo:
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)
             im = Image.open(io.BytesIO(src) if isinstance(src, (bytes, bytearray)) else os.fspath(src))
     except UnidentifiedImageError:
-        if isinstance(src, (bytes, bytearray)):
+        if isinstance(src, (bytes, bytearray)) or Path(src).suffix.lower() not in _openimageio_only():
             raise FaceError(f"cannot read image {name}: not an image format Pillow can decode") from None
         return _read_with_openimageio(src, name)
     except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as e:
@@ -279,6 +279,16 @@ def _box_reduce(a: np.ndarray, k: int) -> np.ndarray:
         return a
     w = a.shape[1] // k * k
     return np.stack([a[i:i + k, :w].reshape(-1, w // k, k, a.shape[2]).mean(axis=(0, 2)) for i in range(0, len(a), k)])
+
+
+@functools.lru_cache(maxsize=None)
+def _openimageio_only() -> frozenset:
+    """File suffixes of the formats OpenImageIO reads and Pillow does not (.exr, .hdr, .dpx, ...):
+    a file Pillow cannot read goes to OpenImageIO only when its name says it is one of them."""
+    import OpenImageIO as oiio
+    suffixes = {"." + ext for fmt in oiio.get_string_attribute("extension_list").split(";")
+                for ext in fmt.partition(":")[2].split(",") if ext}
+    return frozenset(suffixes - set(Image.registered_extensions()))
 
 
 def _read_with_openimageio(path, name: str) -> Photo:

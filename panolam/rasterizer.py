@@ -1,5 +1,8 @@
 """Differentiable 3D Gaussian splatting in pure PyTorch, fast enough to train on a CPU.
 
+Written here because the libraries (gsplat, Inria's diff-gaussian-rasterization) rasterize on CUDA
+only; on a GPU, ``backend="auto"`` hands the work to gsplat.
+
 The API follows ``gsplat.rasterization``; every function in this module shares these conventions.
 
 Inputs

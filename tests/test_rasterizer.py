@@ -373,6 +373,27 @@ def test_ply_loader_ignores_extra_properties(tmp_path):
         assert torch.equal(getattr(a, name), getattr(b, name)), name
 
 
+@pytest.mark.parametrize("text, byte_order", [(True, "="), (False, ">")])
+def test_ply_loader_reads_other_encodings_and_elements(tmp_path, text, byte_order):
+    """ASCII and big-endian files, a double-precision position and a face element with a list property."""
+    from plyfile import PlyData, PlyElement
+    g = Gaussians(**{k: v.float() for k, v in random_scene(6, 42).items() if k != "background"})
+    ours = save_ply(tmp_path / "ours.ply", g)
+    table = np.frombuffer(ours.read_bytes().split(b"end_header\n", 1)[1], dtype="<f4").reshape(6, 17)
+    vertex = np.empty(6, dtype=[(p, "f8" if p in "xyz" else "f4") for p in PLY_PROPERTIES])
+    for i, p in enumerate(PLY_PROPERTIES):
+        vertex[p] = table[:, i]
+    face = np.array([([0, 1, 2],), ([3, 4, 5],)], dtype=[("vertex_indices", "i4", (3,))])
+    PlyData([PlyElement.describe(vertex, "vertex"), PlyElement.describe(face, "face")], text=text,
+            byte_order=byte_order).write(str(tmp_path / "other.ply"))
+    a, b = load_ply(ours), load_ply(tmp_path / "other.ply")
+    for name in ("means", "quats", "scales", "opacities", "colors"):
+        torch.testing.assert_close(getattr(a, name), getattr(b, name), rtol=0, atol=1e-6, msg=name)
+    (tmp_path / "bad.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 5\n")
+    with pytest.raises(ValueError, match="not a readable PLY file"):
+        load_ply(tmp_path / "bad.ply")
+
+
 # --------------------------------------------------------------------------------------------
 # gsplat
 

@@ -275,7 +275,7 @@ def test_nproc_mistakes_are_one_line_before_any_process_starts(curated, tmp_path
 
 @pytest.mark.parametrize("argv, message", [
     (["train", "--data", "D", "--manifest", "M", "--out", "O", "--config", "huge"], "unknown config"),
-    (["eval", "--data", "D", "--manifest", "M", "--ckpt", "/nonexistent/run"], "no manifest here"),
+    (["eval", "--data", "D", "--manifest", "M", "--ckpt", "/nonexistent/run"], "M: no "),  # the manifest, named
     (["infer", "x.png", "--ckpt", "/nonexistent/run", "--out", "h.ply"], "no checkpoint"),
 ])
 def test_cli_errors_are_one_line(argv, message, tmp_path):
