@@ -52,7 +52,7 @@ def launched_by_torchrun() -> bool:
 
 def run(job: Job, nproc: int = 1) -> Optional[dict]:
     """Train ``job`` here, in ``nproc`` new processes, or as this torchrun process; returns the last
-    log entry of this process (None when the work ran in child processes)."""
+    log entry (None when the work ran in child processes, and on torchrun ranks other than 0)."""
     if launched_by_torchrun():
         return _as_torchrun_process(job)
     if nproc == 1:
@@ -70,7 +70,8 @@ def run(job: Job, nproc: int = 1) -> Optional[dict]:
     return None
 
 
-def _as_torchrun_process(job: Job) -> dict:
+def _as_torchrun_process(job: Job) -> Optional[dict]:
+    """This process's share of a torchrun job; the log entry on rank 0 only (one report per run)."""
     import torch
     import torch.distributed as dist
     device = job.device
@@ -79,7 +80,8 @@ def _as_torchrun_process(job: Job) -> dict:
         torch.cuda.set_device(device)
     dist.init_process_group("nccl" if device.startswith("cuda") else "gloo")
     try:
-        return job.run(device)
+        entry = job.run(device)
+        return entry if dist.get_rank() == 0 else None
     finally:
         dist.destroy_process_group()
 

@@ -177,3 +177,21 @@ def test_read_only_folder_is_one_line(tmp_path):
     finally:
         folder.chmod(0o755)
     assert list(folder.iterdir()) == []
+
+
+@pytest.mark.parametrize("error, line", [
+    (PermissionError(errno.EACCES, "Permission denied", "/runs/t1/train.log"), "/runs/t1/train.log: Permission denied"),
+    (OSError(errno.ENOSPC, "No space left on device", "/runs/t1/checkpoint.pt"), "disk full (/runs/t1/checkpoint.pt)"),
+    (NotADirectoryError(errno.ENOTDIR, "Not a directory", "/a/file/views"), "/a/file/views: Not a directory"),
+])
+def test_os_errors_naming_a_file_are_one_line(error, line, capsys):
+    from types import SimpleNamespace
+    from datagen.errors import run_command
+
+    def command(args):
+        raise error
+    assert run_command("panolam", {"train": command}, SimpleNamespace(command="train"), "") == 2
+    assert capsys.readouterr().err == f"panolam train: error: {line}\n"
+    with pytest.raises(OSError):  # an OSError about no file is a bug: its traceback stays
+        run_command("panolam", {"train": lambda args: (_ for _ in ()).throw(OSError("socket"))},
+                    SimpleNamespace(command="train"), "")
