@@ -12,10 +12,10 @@ perceptual term is LPIPS when its weights are given, otherwise D-SSIM ``(1 - SSI
 says which).
 
 Optimizer: Adam, linear warm-up then cosine decay, gradient-norm clipping; bf16 autocast on CUDA.
-A checkpoint (written atomically) holds model, optimizer, scheduler, RNG states, step, both configs
-and what the run trains on (manifest and dataset hashes, the training subjects); since the data
-order is a pure function of (seed, sample index), resuming continues exactly, and a resume with
-another manifest is refused. Several processes (``torchrun`` or ``panolam train --nproc N``) average gradients with
+A checkpoint (:mod:`panolam.checkpoints`) holds model, optimizer, scheduler, RNG states, step, both
+configs and what the run trains on (manifest and dataset hashes, the training subjects); since the
+data order is a pure function of (seed, sample index), resuming continues exactly, and a resume
+with another manifest is refused. Several processes (:mod:`panolam.launch`) average gradients with
 torch.distributed (gloo on CPU, nccl on CUDA); each takes its own slice of every global batch.
 """
 from __future__ import annotations
