@@ -40,12 +40,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.common import (HERE, REPORTS, machine_info, peak_rss_since_reset_mb, pyplot,  # noqa: E402
                                reset_peak_rss, run_child, table, write_report)
 from datagen.manifests import read_manifest  # noqa: E402
-from panolam.config import preset  # noqa: E402
 from panolam.data import accepted_subjects, load_views  # noqa: E402
 from panolam.evaluate import evaluate  # noqa: E402
 from panolam.gaussians import Gaussians  # noqa: E402
 from panolam.model import PanoLAM  # noqa: E402
-from panolam.train import TrainConfig, load_model, read_checkpoint, train  # noqa: E402
+from panolam.checkpoints import load_model, read_checkpoint  # noqa: E402
+from panolam.config import TrainConfig, preset  # noqa: E402
+from panolam.train import train  # noqa: E402
 
 OUT = HERE / "out" / "study"
 MAIN = "main"  # the long `tiny` run: learning curve, speed against error

@@ -152,7 +152,7 @@ def child(config: dict) -> dict:
 
 def phase_breakdown(repeats: int) -> dict:
     """Seconds of each stage at the goal configuration (repeats after a warm-up)."""
-    from panolam.rasterizer import _Composite, _finish
+    from panolam.rasterizer import _Composite, finish
 
     n, r = GOAL_CONFIG
     scene = head_scene(n)
@@ -167,7 +167,7 @@ def phase_breakdown(repeats: int) -> dict:
         t2 = time.perf_counter()
         acc = _Composite.apply(proj.means2d, proj.conics, proj.log_opacities, leaves["colors"], proj.depths, bins)
         t3 = time.perf_counter()
-        sum(o.sum() for o in _finish(acc, None)).backward()
+        sum(o.sum() for o in finish(acc, None)).backward()
         t4 = time.perf_counter()
         if i:
             for key, seconds in zip(times, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):

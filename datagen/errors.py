@@ -68,7 +68,18 @@ def run_command(prog: str, commands: dict, args, interrupted: str) -> int:
         print(f"{prog} {args.command}: interrupted; {interrupted}", file=sys.stderr)
         return 130
     except OSError as e:
-        if e.errno == errno.ENOSPC:
-            print(f"{prog} {args.command}: error: disk full ({e.filename or ''})", file=sys.stderr)
-            return 2
-        raise
+        line = os_error_line(e)
+        if line is None:
+            raise
+        print(f"{prog} {args.command}: error: {line}", file=sys.stderr)
+        return 2
+
+
+def os_error_line(e: OSError) -> str | None:
+    """One line for an OSError about a file (a full disk, permission denied, a read-only folder, a
+    path under a regular file), naming the file; None for an OSError that names none."""
+    if e.errno == errno.ENOSPC:
+        return f"disk full ({e.filename or ''})"
+    if not e.filename:
+        return None
+    return f"{e.filename}: {e.strerror or e}"

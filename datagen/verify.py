@@ -2,13 +2,14 @@
 from __future__ import annotations
 
 import hashlib
+import json
 from pathlib import Path
 
 import numpy as np
 
 from .errors import DatasetError
-from .files import sha256_file
-from .shards import (TRUTH_DIR, decode_sample, iter_tar_samples, read_fields, read_index, read_sidecar,
+from .files import atomic_write, sha256_file
+from .shards import (TRUTH_DIR, decode_sample, dumps, iter_tar_samples, read_fields, read_index, read_sidecar,
                      shard_index, sidecar_path, tar_path, truth_path)
 
 SUBJECT_KEYS = ("format", "subject_id", "subject_index", "dataset_seed", "generator", "latent", "protocol",
@@ -142,3 +143,58 @@ def verify_dataset(root, progress: bool = False) -> dict:
             subjects += len(shard["subjects"])
     stray = sorted(str(p) for p in list(root.glob(".*tmp-*")) + list((root / TRUTH_DIR).glob(".*tmp-*")))
     return {"shards": len(shards), "complete": complete, "subjects": subjects, "problems": problems, "stray": stray}
+
+
+# ----------------------------------------------------------------------------------------------
+# The fast check readers run before they rely on shards (training, manifest compilation)
+
+SHARD_CHECKS = ".verified-shards.json"  # in the dataset folder: the shards that passed check_shards
+
+
+def check_shards(root, shards) -> list[str]:
+    """Problems (one line each, naming the file) of the shards numbered ``shards`` of a dataset:
+    the sidecar is there and readable, and the tar has the size and sha256 it records, as
+    ``datagen verify`` checks them (images are not decoded). Empty when all pass.
+
+    A shard that passed is remembered in ``root/.verified-shards.json`` with the size and mtime of
+    its tar and sidecar; while those stay the same it is not hashed again, so a second check costs
+    a few ``stat`` calls. A dataset folder that cannot be written is checked in full every time.
+    """
+    root = Path(root)
+    cache_path = root / SHARD_CHECKS
+    try:
+        cache = json.loads(cache_path.read_text())
+    except (OSError, ValueError):
+        cache = {}
+    cache = cache if isinstance(cache, dict) else {}
+    problems, passed = [], {}
+    for i in sorted(set(shards)):
+        tar, side_path = tar_path(root, i), sidecar_path(root, i)
+        side = read_sidecar(root, i)
+        if side is None:
+            problems.append(f"{tar}: no readable sidecar {side_path.name}: the shard is incomplete or damaged "
+                            f"(datagen verify {root} tells more)")
+            continue
+        if not tar.exists():
+            problems.append(f"{tar}: missing although its sidecar exists")
+            continue
+        stamp = [_stat_stamp(tar), _stat_stamp(side_path), side.get("tar_sha256")]
+        if cache.get(tar.name) == stamp:
+            passed[tar.name] = stamp
+        elif tar.stat().st_size != side.get("tar_bytes"):
+            problems.append(f"{tar}: size {tar.stat().st_size} differs from the sidecar's {side.get('tar_bytes')}")
+        elif sha256_file(tar) != side.get("tar_sha256"):
+            problems.append(f"{tar}: sha256 differs from the sidecar (corrupted)")
+        else:
+            passed[tar.name] = stamp
+    if any(cache.get(name) != stamp for name, stamp in passed.items()):
+        try:
+            atomic_write(cache_path, dumps({**cache, **passed}))
+        except OSError:
+            pass  # a read-only dataset: nothing remembered, the next check hashes again
+    return problems
+
+
+def _stat_stamp(path: Path) -> list[int]:
+    st = path.stat()
+    return [st.st_size, st.st_mtime_ns]

@@ -1,4 +1,4 @@
-"""Model configuration: one dataclass, named presets, ablation switches.
+"""Configuration: the model (one dataclass, named presets, ablation switches) and training.
 
 ``full`` carries the paper's values (DINOv2 ViT-L/14 layers 5/12/18/24 fused to C_t = 512 tokens,
 a 5,023-vertex template, 8 blocks of 16 heads, M_D ~ 10K dense Gaussians, a 6 x 64 x 64 spherical
@@ -6,10 +6,12 @@ tri-plane queried by K_m = 32 samples on rays from 4 virtual cameras, offsets cl
 (coarse) and 0.056 m (dense)). ``tiny`` keeps every stage but is sized to train on a 2-core CPU.
 
 Lengths named ``*_m`` are in FLAME metres, as in the paper; the model converts them to world units
-with the template's ``units_per_metre``. Other lengths are world units (CONVENTIONS.md: the head is
+with the template's ``units_per_metre``. Other lengths are world units (:mod:`datagen.cameras`: the head is
 about one unit tall). Ablations (the paper's): ``coarse_to_fine=False`` regresses the dense points
 directly from the attention stack; ``triplane="point"`` queries the tri-plane at the point only;
 ``triplane="none"`` drops the branch.
+
+Fields made with :func:`panolam.options.setting` are also command-line options, with that help.
 """
 from __future__ import annotations
 
@@ -17,8 +19,9 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Optional
 
+from .options import at_least, non_negative, path_fields, positive, setting, unit_interval
+
 TRIPLANE_MODES = ("rays", "point", "none")
-PATH_FIELDS = ("encoder_weights", "template", "spherehead_checkpoint")  # name files, which may move
 
 
 @dataclass(frozen=True)
@@ -26,7 +29,8 @@ class ModelConfig:
     name: str = "tiny"
     # image encoder
     encoder: str = "small"                     # "dinov2" (frozen, weights from the user) or "small" (from scratch)
-    encoder_weights: Optional[str] = None      # DINOv2: a Hugging Face folder or Meta's .pth
+    encoder_weights: Optional[str] = setting(None, "DINOv2 weights (Hugging Face folder or Meta .pth); needed by "
+                                                   "'full'", path=True)
     encoder_layers: tuple = (2, 4)             # 1-based blocks whose normalized outputs are fused
     image_size: int = 128                      # encoder input, px (images are resized to it)
     patch_size: int = 8                        # small encoder only
@@ -34,7 +38,7 @@ class ModelConfig:
     encoder_depth: int = 4                     # small encoder only
     token_dim: int = 192                       # C_t
     # template and coarse stage
-    template: Optional[str] = None             # a FLAME model file; None: the embedded head template
+    template: Optional[str] = setting(None, "a FLAME model file (default: the embedded head template)", path=True)
     template_vertices: int = 1280              # embedded template size
     pe_frequencies: int = 8                    # NeRF encoding: sin/cos of 2^k pi x, k < this
     blocks: int = 4                            # L: cross-attention blocks of the point tokens
@@ -58,7 +62,9 @@ class ModelConfig:
     virtual_camera_radius: float = 2.7         # world units, the 4 cameras (front, left, right, back)
     box_warp: float = 1.0                      # SphereHead's tri-plane extent, world units
     triplane_aggregate_dim: int = 64           # width of the aggregated tri-plane feature per point
-    spherehead_checkpoint: Optional[str] = None  # frozen SphereHead decoder; None: a small trainable one
+    spherehead_checkpoint: Optional[str] = setting(
+        None, "a SphereHead checkpoint whose frozen decoder renders the tri-plane branch (default: a small "
+              "trainable decoder)", flag="--spherehead", path=True)
     triplane_render_resolution: int = 32       # px of the branch's own supervision image
     triplane_render_views: Optional[int] = 2   # targets per sample it renders (None: all); its loss weighs 0.1
     triplane_render_samples: tuple = (12, 12)  # stratified, importance samples per ray
@@ -79,13 +85,61 @@ class ModelConfig:
 
     @classmethod
     def from_dict(cls, values: dict) -> "ModelConfig":
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"unknown model settings: {', '.join(unknown)}")
-        tuples = {k: tuple(v) for k, v in values.items() if isinstance(v, list)}
-        return cls(**{**values, **tuples})
+        return _from_dict(cls, values)
 
+
+def _from_dict(cls, values: dict):
+    """A config from its ``to_dict`` (JSON turns tuples into lists); ValueError on an unknown setting."""
+    unknown = sorted(set(values) - {f.name for f in dataclasses.fields(cls)})
+    if unknown:
+        raise ValueError(f"unknown settings: {', '.join(unknown)}")
+    return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
+
+
+PATH_FIELDS = path_fields(ModelConfig)  # name files, which may move
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Training settings; every field is a ``panolam train`` option (its help is the text here)."""
+
+    steps: int = setting(2000, "optimizer steps; the cosine schedule ends there", parse=at_least(1), fixed=True)
+    batch_size: int = setting(2, "subjects per step and process", parse=at_least(1), fixed=True)
+    views_per_sample: int = setting(6, "N_v: 1 input + N_v - 1 targets", parse=at_least(2), fixed=True)
+    render_resolution: int = setting(64, "px of the supervised renders (targets are area-resized)",
+                                     parse=at_least(16), fixed=True)
+    lr: float = setting(4e-4, "peak learning rate", parse=positive, fixed=True)
+    betas: tuple = setting((0.9, 0.95), "Adam's beta1 beta2", parse=unit_interval, nargs=2, fixed=True)
+    warmup_steps: int = setting(100, "linear warm-up steps", parse=at_least(0), fixed=True)
+    grad_clip: float = setting(1.0, "gradient-norm clipping threshold", parse=positive, fixed=True)
+    lambda_l1: float = setting(1.0, "lambda_1, weight of L1 in L_rgb", parse=non_negative, fixed=True)
+    lambda_perceptual: float = setting(1.0, "lambda_2, weight of the perceptual term in L_rgb", parse=non_negative,
+                                       fixed=True)
+    lambda_gaussians: float = setting(1.0, "lambda_3, weight of L_rgb of the Gaussian renders", parse=non_negative,
+                                      fixed=True)
+    lambda_triplane_rgb: float = setting(0.1, "lambda_4, weight of L_rgb of the tri-plane render",
+                                         parse=non_negative, fixed=True)
+    lambda_mask: float = setting(1.0, "lambda_5, weight of the silhouette L1", parse=non_negative, fixed=True)
+    lambda_planes: float = setting(1e-4, "lambda_6, weight of the tri-plane feature L1", parse=non_negative,
+                                   fixed=True)
+    lpips_backbone: Optional[str] = setting(None, "torchvision-format AlexNet/VGG16 weights for LPIPS")
+    lpips_lin: Optional[str] = setting(None, "LPIPS linear-layer weights (alex.pth / vgg.pth)")
+    lpips_net: str = setting("alex", "LPIPS backbone", choices=("alex", "vgg"))
+    seed: int = setting(0, "data order and initialisation", parse=at_least(0), fixed=True)
+    num_workers: int = setting(0, "data loader processes; 0 loads in this process", parse=at_least(0), flag="--workers")
+    log_every: int = setting(10, "steps between TensorBoard scalars and console lines", parse=at_least(1))
+    image_every: int = setting(200, "steps between TensorBoard image grids", parse=at_least(1))
+    checkpoint_every: int = setting(100, "steps between checkpoints", parse=at_least(1))
+    time_limit_s: Optional[float] = setting(None, "seconds; stop with a checkpoint before a step that would end "
+                                                  "later (predicted from the steps so far)", parse=positive,
+                                            flag="--time-limit")
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict) -> "TrainConfig":
+        return _from_dict(cls, values)
 
 PRESETS = {
     "tiny": ModelConfig(),

@@ -9,7 +9,7 @@ uninterrupted run would, on any number of processes and loader workers.
 Images are (3, H, W) float32 in [0, 1] composited over white with the view's alpha (the procedural
 generator already renders on white; for GAN backgrounds this drops the background so the Gaussians,
 which model only the head, are compared on the same background). Cameras: OpenCV cam2world (4, 4)
-and normalized intrinsics (3, 3), as stored (CONVENTIONS.md). The model's input (the first view) is
+and normalized intrinsics (3, 3), as stored (:mod:`datagen.cameras`). The model's input (the first view) is
 resized from the stored image to the encoder's input size, apart from the targets, which are resized
 to the render resolution: the encoder sees the same detail in training as on a photo.
 """
@@ -23,9 +23,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from datagen.errors import UserError
-from datagen.shards import decode_sample, read_fields, shard_index
+from datagen.errors import DatasetError, UserError
 from datagen.manifests import check_dataset, read_manifest
+from datagen.shards import decode_sample, read_fields, shard_index, tar_path
+from datagen.verify import check_shards
 
 BACKGROUND = (1.0, 1.0, 1.0)
 SPHEREHEAD_PLANES_NDIM = 5  # (2, D, C, R, R); EG3D's and PanoHead's are (3, C, R, R)
@@ -46,6 +47,15 @@ def accepted_subjects(manifest: dict, split: str, root=None) -> list[tuple[str, 
     if not out:
         raise UserError(f"the manifest accepts no {split} subjects")
     return out
+
+
+def check_subject_shards(root, subjects: list[tuple[str, int]]) -> None:
+    """DatasetError naming the first shard holding one of ``subjects`` that fails the fast integrity
+    check (:func:`datagen.verify.check_shards`: sidecar, size, sha256; cached, so cheap the second time)."""
+    problems = check_shards(root, {shard for _, shard in subjects})
+    if problems:
+        more = f" (and {len(problems) - 1} more problems: run datagen verify)" if len(problems) > 1 else ""
+        raise DatasetError(problems[0] + more)
 
 
 def _rng(seed: int, *stream: int) -> np.random.Generator:
@@ -92,12 +102,14 @@ def load_views(root, key: str, shard: int, views=None, resolution: int | None = 
 
     With ``input_resolution``, ``inputs`` holds the first of these views resized from the stored image.
     """
-    return decode_views(key, read_fields(root, shard, key), views, resolution, input_resolution, str(root))
+    return decode_views(key, read_fields(root, shard, key), views, resolution, input_resolution,
+                        str(tar_path(root, shard)))
 
 
 def decode_views(key: str, fields: dict, views=None, resolution: int | None = None,
                  input_resolution: int | None = None, where: str = "") -> Views:
-    """:func:`load_views` on a subject's raw fields (:func:`datagen.shards.read_fields`)."""
+    """:func:`load_views` on a subject's raw fields (:func:`datagen.shards.read_fields`); ``where``
+    (the shard file) starts a decoding error's message, which names the subject."""
     if views is None:
         views = range(len(json.loads(fields["json"])["views"]))
     views = [int(v) for v in views]
@@ -135,6 +147,7 @@ class TrainingSamples(torch.utils.data.Dataset):
                  input_resolution: int | None = None):
         self.root, self.seed = root, seed
         self.subjects = accepted_subjects(read_manifest(manifest_path), split, root)
+        check_subject_shards(root, self.subjects)
         self.views_per_sample, self.resolution, self.input_resolution = views_per_sample, resolution, input_resolution
         key, shard = self.subjects[0]
         n = len(view_yaws(read_fields(root, shard, key)))
@@ -160,7 +173,7 @@ class TrainingSamples(torch.utils.data.Dataset):
         if n < self.views_per_sample:
             raise UserError(f"{self.root}: subject {key} has {n} views, fewer than {self.views_per_sample} per sample")
         return decode_views(key, fields, self.view_choice(g, n), self.resolution, self.input_resolution,
-                            str(self.root))
+                            str(tar_path(self.root, shard)))
 
 
 def collate(items: list[Views]) -> Views:

@@ -21,9 +21,9 @@ import numpy as np
 import torch
 
 from datagen.files import atomic_write
-from datagen.shards import read_fields, to_uint8
+from datagen.shards import read_fields, tar_path, to_uint8
 
-from .data import BACKGROUND, accepted_subjects, decode_views, view_yaws
+from .data import BACKGROUND, accepted_subjects, check_subject_shards, decode_views, view_yaws
 from .metrics import psnr, ssim
 from .model import PanoLAM
 from .rasterizer import render_views
@@ -61,6 +61,7 @@ def evaluate(model: PanoLAM, data, manifest: dict, split: str = "test", resoluti
     """Metrics per subject and view plus their means; ``faces``: the :mod:`panolam.faces` module (CSIM, APD) or None."""
     device = next(model.parameters()).device
     subjects = accepted_subjects(manifest, split, data)[:limit]
+    check_subject_shards(data, subjects)
     rows, skipped, rec_times, render_times, front_targets = [], [], [], [], []
     for key, shard in subjects:
         fields = read_fields(data, shard, key)
@@ -69,7 +70,7 @@ def evaluate(model: PanoLAM, data, manifest: dict, split: str = "test", resoluti
             skipped.append(key)
             continue
         idx = list(picked.values())
-        meta_views = decode_views(key, fields, idx, resolution, model.cfg.image_size, str(data))
+        meta_views = decode_views(key, fields, idx, resolution, model.cfg.image_size, str(tar_path(data, shard)))
         images = meta_views.images.to(device)
         x = meta_views.inputs[None].to(device)
         t0 = time.perf_counter()
@@ -95,7 +96,7 @@ def evaluate(model: PanoLAM, data, manifest: dict, split: str = "test", resoluti
                 row["csim"] = faces.csim(a, b, box_from_b=True) if name == "front" else None
                 if name == "front":
                     front_targets.append(b)
-                row["apd"] = faces.apd(a, b)
+                row["apd"] = faces.apd(a, b, focal=float(meta_views.K[j, 0, 0]))  # both seen by this camera
             rows.append(row)
         if progress is not None:
             progress()

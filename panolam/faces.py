@@ -27,16 +27,17 @@ import functools
 import io
 import math
 import os
+import warnings
 from dataclasses import dataclass
 from importlib.util import find_spec
 from pathlib import Path
 
+import cv2
 import numpy as np
 from PIL import Image, ImageOps, UnidentifiedImageError
-from scipy import ndimage
-from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from datagen.cameras import FOV_MEAN, fov_to_focal, intrinsics, pixel_intrinsics
 from datagen.errors import UserError
 from datagen.shards import to_uint8
 
@@ -45,7 +46,10 @@ CROP_SIDE = 700 / 300
 EYE_DISTANCE = 0.62129
 EYE_TO_MOUTH = 0.67135
 CENTRE_BELOW_EYES = 0.29004 / EYE_TO_MOUTH  # fraction of eye-to-mouth
-TRAINING_FOV_DEG = 18.837
+DEFAULT_FOCAL = float(fov_to_focal(FOV_MEAN))  # normalized focal of the datasets' mean camera
+MAX_PHOTO_PIXELS = 100_000_000  # photos above this are refused before they are decoded
+WORK_MAX_SIDE = 4096  # px; larger photos are downscaled to this long side as they are decoded
+PHOTO_STRIP_ROWS = 256  # rows (of the working image) OpenImageIO decodes at a time
 VERIFY_FACE_PX = 90  # a HOG candidate is confirmed by MMOD on a crop 1.6x its width, at this face width
 
 # Generic adult face, mm: x toward the image right of a frontal face, y down, z away from the
@@ -152,14 +156,15 @@ def _to_float_rgb(image) -> np.ndarray:
         a = a[..., None]
     if a.ndim != 3 or a.shape[2] not in (1, 2, 3, 4) or min(a.shape[:2]) < 1:
         raise FaceError(f"expected an image (H, W) or (H, W, 1-4 channels), got shape {a.shape}")
-    if a.dtype.kind == "u" and a.itemsize == 1:
-        a = a.astype(np.float32) / 255
-    elif a.dtype.kind in "ui":  # 16-bit data (Pillow reads 16-bit gray PNGs as int32 or uint16)
-        a = np.clip(a.astype(np.float32) / 65535, 0, 1)
-    elif a.dtype.kind in "fb":
-        a = np.clip(np.nan_to_num(a.astype(np.float32)), 0, 1)
-    else:
+    if a.dtype.kind not in "uifb":
         raise FaceError(f"unsupported image dtype {a.dtype}")
+    source, a = a, a.astype(np.float32)  # one float copy, scaled in place
+    if source.dtype.kind == "u" and source.itemsize == 1:
+        a /= 255
+    elif source.dtype.kind in "ui":  # 16-bit data (Pillow reads 16-bit gray PNGs as int32 or uint16)
+        a /= 65535
+    if source.dtype.kind != "u" or source.itemsize > 1:
+        np.clip(np.nan_to_num(a, copy=False), 0, 1, out=a)
     if a.shape[2] in (2, 4):
         a, alpha = a[..., :-1], a[..., -1:]
         a = a * alpha + (1 - alpha)
@@ -181,23 +186,144 @@ def _resize(u8: np.ndarray, k: float) -> np.ndarray:
 
 def load_image(src) -> tuple[np.ndarray, str]:
     """(H, W, 3) float32 RGB in [0, 1] and a name for messages, from a path, encoded bytes or an
-    array. Applies the EXIF orientation; composites transparency on white; keeps 16-bit gray
-    precision (16-bit RGB files are read at 8 bits by Pillow)."""
+    array (see :func:`read_photo`)."""
+    photo = read_photo(src)
+    return photo.rgb, photo.name
+
+
+@dataclass(frozen=True)
+class Photo:
+    """A decoded photo: rgb (H, W, 3) float32 in [0, 1], downscaled by ``scale`` (<= 1) from the
+    file's ``size`` (W, H) px when that is larger than WORK_MAX_SIDE."""
+
+    rgb: np.ndarray
+    name: str
+    size: tuple[int, int]
+    scale: float
+
+
+def read_photo(src) -> Photo:
+    """Decode a photo from a path, encoded bytes or an array.
+
+    Pillow reads JPEG, PNG, WebP, TIFF, ... (paths and bytes); files in formats Pillow lacks (EXR,
+    HDR, DPX, JPEG XL, ...) are read by OpenImageIO (paths only: its Python bindings read no
+    in-memory files), linear float data encoded to sRGB. Applies the EXIF orientation; composites
+    transparency on white; keeps 16-bit gray precision (16-bit RGB files are read at 8 bits by
+    Pillow). A photo above MAX_PHOTO_PIXELS is refused from its header, before decoding; one whose
+    long side exceeds WORK_MAX_SIDE is downscaled (area averaging) as it is decoded (a JPEG at 1/2,
+    1/4 or 1/8 scale by its decoder), so memory stays bounded by the working size.
+    """
     if isinstance(src, np.ndarray):
-        return _to_float_rgb(src), f"array {src.shape}"
+        h, w = src.shape[:2] if src.ndim >= 2 else (0, 0)
+        name = f"array {src.shape}"
+        return _photo(_to_float_rgb(_fit(np.asarray(src), name)), name, (w, h))
     name = "image bytes" if isinstance(src, (bytes, bytearray)) else str(src)
     try:
-        with Image.open(io.BytesIO(src) if isinstance(src, (bytes, bytearray)) else os.fspath(src)) as im:
+        with warnings.catch_warnings():  # the pixel limit below replaces Pillow's bomb warning
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            im = Image.open(io.BytesIO(src) if isinstance(src, (bytes, bytearray)) else os.fspath(src))
+    except UnidentifiedImageError:
+        if isinstance(src, (bytes, bytearray)) or Path(src).suffix.lower() not in _openimageio_only():
+            raise FaceError(f"cannot read image {name}: not an image format Pillow can decode") from None
+        return _read_with_openimageio(src, name)
+    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as e:
+        raise FaceError(f"cannot read image {name}: {e}") from None
+    try:
+        with im:
+            size = im.size
+            _check_pixels(size, name)
+            k = _reduction(size)
+            if k > 1 and im.format == "JPEG":  # decode at a reduced scale: the full image is never in memory
+                im.draft(im.mode, (-(-size[0] // k), -(-size[1] // k)))
             im = ImageOps.exif_transpose(im)
             im.load()
             if im.mode.startswith("I") or im.mode == "F":
-                return _to_float_rgb(np.asarray(im)), name
-            has_alpha = "A" in im.getbands() or "transparency" in im.info
-            return _to_float_rgb(np.asarray(im.convert("RGBA" if has_alpha else "RGB"))), name
-    except UnidentifiedImageError:
-        raise FaceError(f"cannot read image {name}: not an image format Pillow can decode") from None
+                pixels = np.asarray(im)
+            else:
+                has_alpha = "A" in im.getbands() or "transparency" in im.info
+                pixels = np.asarray(im.convert("RGBA" if has_alpha else "RGB"))
     except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as e:
         raise FaceError(f"cannot read image {name}: {e}") from None
+    return _photo(_to_float_rgb(_fit(pixels, name)), name, size)
+
+
+def _photo(rgb: np.ndarray, name: str, size: tuple[int, int]) -> Photo:
+    return Photo(rgb, name, size, rgb.shape[1] / size[0] if size[0] else 1.0)
+
+
+def _check_pixels(size: tuple[int, int], name: str) -> None:
+    if size[0] * size[1] > MAX_PHOTO_PIXELS:
+        raise FaceError(f"{name}: {size[0]}x{size[1]} px is {size[0] * size[1] / 1e6:.0f} megapixels, above the "
+                        f"limit of {MAX_PHOTO_PIXELS / 1e6:.0f}; downscale it first (a head crop needs far fewer)")
+
+
+def _reduction(size: tuple[int, int]) -> int:
+    """The integer factor that brings the long side to WORK_MAX_SIDE or less."""
+    return max(1, -(-max(size) // WORK_MAX_SIDE))
+
+
+def _fit(pixels: np.ndarray, name: str) -> np.ndarray:
+    """``pixels`` (H, W[, C]) area-averaged to a long side of at most WORK_MAX_SIDE."""
+    h, w = pixels.shape[:2]
+    if max(h, w) <= WORK_MAX_SIDE:
+        return pixels
+    k = WORK_MAX_SIDE / max(h, w)
+    if pixels.dtype not in (np.uint8, np.uint16, np.float32):
+        pixels = pixels.astype(np.float32) / (65535 if pixels.dtype.kind in "ui" else 1)
+    return cv2.resize(pixels, (max(1, round(w * k)), max(1, round(h * k))), interpolation=cv2.INTER_AREA)
+
+
+def _box_reduce(a: np.ndarray, k: int) -> np.ndarray:
+    """(H, W, C) -> (ceil(H / k), W // k, C): means of k x k blocks (the last block row may be shorter)."""
+    if k == 1:
+        return a
+    w = a.shape[1] // k * k
+    return np.stack([a[i:i + k, :w].reshape(-1, w // k, k, a.shape[2]).mean(axis=(0, 2)) for i in range(0, len(a), k)])
+
+
+@functools.lru_cache(maxsize=None)
+def _openimageio_only() -> frozenset:
+    """File suffixes of the formats OpenImageIO reads and Pillow does not (.exr, .hdr, .dpx, ...):
+    a file Pillow cannot read goes to OpenImageIO only when its name says it is one of them."""
+    import OpenImageIO as oiio
+    suffixes = {"." + ext for fmt in oiio.get_string_attribute("extension_list").split(";")
+                for ext in fmt.partition(":")[2].split(",") if ext}
+    return frozenset(suffixes - set(Image.registered_extensions()))
+
+
+def _read_with_openimageio(path, name: str) -> Photo:
+    """A photo in a format Pillow lacks, through OpenImageIO, read in strips of rows that are
+    box-averaged to the working size as they come (module docstring of read_photo)."""
+    import OpenImageIO as oiio
+    source = oiio.ImageInput.open(os.fspath(path))
+    if source is None:
+        message = (oiio.geterror() or "unknown format").splitlines()[0]
+        raise FaceError(f"cannot read image {name}: not an image format Pillow or OpenImageIO can decode "
+                        f"({message})")
+    try:
+        spec = source.spec()
+        size = (spec.width, spec.height)
+        _check_pixels(size, name)
+        names = [c.upper() for c in spec.channelnames]
+        wanted = [names.index(c) for c in ("R", "G", "B", "A") if c in names] or list(range(min(3, spec.nchannels)))
+        k = _reduction(size)
+        rows = []
+        for top in range(0, spec.height, k * PHOTO_STRIP_ROWS):
+            strip = source.read_scanlines(0, 0, top, min(spec.height, top + k * PHOTO_STRIP_ROWS), 0, 0,
+                                          spec.nchannels, "float")
+            if strip is None:
+                raise FaceError(f"cannot read image {name}: {oiio.geterror().splitlines()[0]}")
+            strip = np.asarray(strip, np.float32).reshape(-1, spec.width, spec.nchannels)[..., wanted]
+            rows.append(_box_reduce(strip, k))
+    finally:
+        source.close()
+    pixels = np.concatenate(rows)
+    linear = spec.format.basetype in (oiio.HALF, oiio.FLOAT, oiio.DOUBLE) and \
+        "srgb" not in spec.get_string_attribute("oiio:ColorSpace").lower()
+    if linear:  # scene-linear (EXR, HDR): the sRGB encoding photos and training images carry
+        c = np.clip(np.nan_to_num(pixels[..., :3]), 0, 1)
+        pixels[..., :3] = np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
+    return _photo(_to_float_rgb(pixels), name, size)
 
 
 # ------------------------------------------------------------------------------------- detection
@@ -276,7 +402,7 @@ def _pad(img: np.ndarray, pads: tuple[int, int, int, int], side: float, pad) -> 
     dy = np.maximum(np.maximum(t - yy, yy - (t + img.shape[0] - 1)), 0)
     dx = np.maximum(np.maximum(l - xx, xx - (l + img.shape[1] - 1)), 0)
     outside = np.maximum(dy[:, None], dx[None, :])[..., None].astype(np.float32)
-    blurred = ndimage.gaussian_filter(out, sigma=(0.02 * side, 0.02 * side, 0))
+    blurred = cv2.GaussianBlur(out, (0, 0), 0.02 * side, borderType=cv2.BORDER_REFLECT)
     out += (blurred - out) * np.clip(outside / (0.05 * side), 0, 1)
     out += (np.median(img.reshape(-1, 3), axis=0) - out) * np.clip(outside / (0.3 * side), 0, 1)
     return out
@@ -284,8 +410,9 @@ def _pad(img: np.ndarray, pads: tuple[int, int, int, int], side: float, pad) -> 
 
 def warp_quad(rgb: np.ndarray, quad: np.ndarray, out_size: int, pad="blur") -> np.ndarray:
     """Resample the square ``quad`` (head_quad's corner order) of a float RGB image to
-    (out_size, out_size, 3) float32: box-filtered first when it is 2x or more larger, bilinear,
-    padded with ``pad`` (see _pad) where it leaves the image."""
+    (out_size, out_size, 3) float32: area-averaged first (OpenCV INTER_AREA) when it is 2x or more
+    larger, then one bilinear affine warp (``cv2.warpAffine``), padded with ``pad`` (see _pad) where
+    it leaves the image."""
     quad = np.asarray(quad, np.float64)
     side = float(np.hypot(*(quad[3] - quad[0])))
     h, w = rgb.shape[:2]
@@ -293,12 +420,13 @@ def warp_quad(rgb: np.ndarray, quad: np.ndarray, out_size: int, pad="blur") -> n
     hi = np.ceil(quad.max(axis=0)).astype(int) + 3
     x0, y0 = np.clip(lo, 0, [w - 1, h - 1])
     x1, y1 = np.maximum(np.minimum(hi, [w, h]), [x0 + 1, y0 + 1])
-    img, quad = rgb[y0:y1, x0:x1], quad - [x0, y0]
-    shrink = int(side // out_size)
-    if shrink >= 2 and min(img.shape[:2]) >= shrink:
-        hh, ww = img.shape[0] // shrink * shrink, img.shape[1] // shrink * shrink
-        img = img[:hh, :ww].reshape(hh // shrink, shrink, ww // shrink, shrink, 3).mean(axis=(1, 3))
-        quad, side = (quad + 0.5) / shrink - 0.5, side / shrink
+    img, quad = np.ascontiguousarray(rgb[y0:y1, x0:x1], np.float32), quad - [x0, y0]
+    if side >= 2 * out_size:
+        k = out_size / side  # the quad's side becomes out_size px
+        size = (max(1, round(img.shape[1] * k)), max(1, round(img.shape[0] * k)))
+        scale = np.array([size[0] / img.shape[1], size[1] / img.shape[0]])
+        img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+        quad, side = (quad + 0.5) * scale - 0.5, side * float(scale.mean())  # pixel centres at integers
     lo = np.floor(quad.min(axis=0)).astype(int) - 2
     hi = np.ceil(quad.max(axis=0)).astype(int) + 3
     l, t = np.maximum(-lo, 0)
@@ -306,11 +434,12 @@ def warp_quad(rgb: np.ndarray, quad: np.ndarray, out_size: int, pad="blur") -> n
     if l or t or r or b:
         img = _pad(img, (t, b, l, r), side, pad)
         quad = quad + [l, t]
-    u = (np.arange(out_size) + 0.5) / out_size
-    src = quad[0] + u[None, :, None] * (quad[3] - quad[0]) + u[:, None, None] * (quad[1] - quad[0])
-    coords = [src[..., 1], src[..., 0]]
-    return np.stack([ndimage.map_coordinates(img[..., ch], coords, order=1, mode="nearest")
-                     for ch in range(3)], axis=-1).astype(np.float32)
+    # output pixel (row i, column j) samples quad[0] + u (quad[3] - quad[0]) + v (quad[1] - quad[0]),
+    # u = (j + 0.5) / out_size, v = (i + 0.5) / out_size: an affine map from output to source pixels
+    across, down = (quad[3] - quad[0]) / out_size, (quad[1] - quad[0]) / out_size
+    to_source = np.column_stack([across, down, quad[0] + 0.5 * (across + down)])
+    return cv2.warpAffine(img, to_source, (out_size, out_size), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                          borderMode=cv2.BORDER_REPLICATE)
 
 
 def crop_head(image, box: Box, out_size: int, scale: float = 1.0, pad="blur") -> np.ndarray:
@@ -322,14 +451,16 @@ def crop_head(image, box: Box, out_size: int, scale: float = 1.0, pad="blur") ->
 def prepare_photo(src, out_size: int = 512, pick: str = "single", scale: float = 1.0, pad="blur",
                   max_side: int = 1024) -> tuple[np.ndarray, dict]:
     """A photo (path, encoded bytes or array) -> its EG3D-framed head crop, (out_size, out_size, 3)
-    float32 in [0, 1], and an info dict (source, size (W, H), n_faces, box, quad, face_px = eye
-    distance in source px, upsampled = the crop enlarges the source).
+    float32 in [0, 1], and an info dict (source, size (W, H) of the file, scale of the working image
+    (see read_photo), n_faces, box and quad in working px, face_px = eye distance in the file's px,
+    upsampled = the crop enlarges the source).
 
     Raises FaceError for an unreadable file, no face, or several faces unless ``pick='largest'``.
     """
     if pick not in ("single", "largest"):
         raise ValueError(f"pick must be 'single' or 'largest', got {pick!r}")
-    rgb, name = load_image(src)
+    photo = read_photo(src)
+    rgb, name = photo.rgb, photo.name
     h, w = rgb.shape[:2]
     u8 = to_uint8(rgb)
     faces = detect_faces(u8, max_side=max_side)
@@ -337,12 +468,14 @@ def prepare_photo(src, out_size: int = 512, pick: str = "single", scale: float =
         raise FaceError(f"no face found in {name} ({w}x{h} px): a face must be upright, roughly frontal "
                         f"and at least ~20 px wide")
     if len(faces) > 1 and pick == "single":
-        raise FaceError(f"{len(faces)} faces found in {name}; pass pick='largest' to use the largest")
+        raise FaceError(f"{len(faces)} faces found in {name}; take the largest with --pick largest "
+                        f"(pick='largest' in Python)")
     lm = landmarks(u8, faces[0])
     quad = head_quad(lm, scale)
     side = float(np.hypot(*(quad[3] - quad[0])))
-    info = dict(source=name, size=(w, h), n_faces=len(faces), box=faces[0], quad=quad,
-                face_px=float(np.hypot(*(lm[42:48].mean(0) - lm[36:42].mean(0)))), upsampled=side < out_size)
+    info = dict(source=name, size=photo.size, scale=photo.scale, n_faces=len(faces), box=faces[0], quad=quad,
+                face_px=float(np.hypot(*(lm[42:48].mean(0) - lm[36:42].mean(0)))) / photo.scale,
+                upsampled=side < out_size)
     return warp_quad(rgb, quad, out_size, pad), info
 
 
@@ -404,46 +537,62 @@ def csim_between_subjects(images, embedder: FaceEmbedder | None = None) -> tuple
     return float(sim[~np.eye(len(found), dtype=bool)].mean()), len(found)
 
 
-def pose_from_landmarks(lm68: np.ndarray, width: int, height: int,
-                        fov_deg: float = TRAINING_FOV_DEG) -> tuple[float, float, float]:
-    """(yaw, pitch, roll) in degrees from 68 landmarks: perspective PnP of GENERIC_FACE (least
-    squares on the reprojection error), focal from ``fov_deg`` across the image width, principal
-    point at the centre. yaw > 0: the face turns toward the image right; pitch > 0: it looks up;
-    roll > 0: it tilts clockwise in the image. Rotation = Ry(-yaw) Rx(-pitch) Rz(roll), camera axes."""
+@dataclass(frozen=True)
+class HeadPose:
+    """A face's pose in the camera: degrees; yaw > 0: the face turns toward the image right; pitch > 0:
+    it looks up; roll > 0: it tilts clockwise in the image. Rotation = Ry(-yaw) Rx(-pitch) Rz(roll)
+    in OpenCV camera axes (GENERIC_FACE's axes for a frontal face). translation_mm: GENERIC_FACE's
+    origin in camera coordinates, mm."""
+
+    yaw: float
+    pitch: float
+    roll: float
+    translation_mm: tuple
+
+    @property
+    def angles(self) -> tuple[float, float, float]:
+        return self.yaw, self.pitch, self.roll
+
+
+def pose_from_landmarks(lm68: np.ndarray, width: int, height: int, focal: float = DEFAULT_FOCAL) -> HeadPose:
+    """The head pose of 68 landmarks: OpenCV's perspective PnP of GENERIC_FACE (Levenberg-Marquardt
+    on the reprojection error from a frontal start) through the camera of :mod:`datagen.cameras`:
+    normalized focal ``focal`` (EG3D's convention, the one every render uses), principal point at
+    the image centre."""
     lm68 = np.asarray(lm68, np.float64)
-    model, obs = np.array(list(GENERIC_FACE.values())), lm68[list(GENERIC_FACE)]
-    f = 0.5 * width / math.tan(math.radians(fov_deg) / 2)
-    centre = np.array([width / 2, height / 2])
-    # start frontal, at the distance where the outer eye corners are as far apart as observed;
-    # the translation is solved in units of that distance z0
-    z0 = f * (GENERIC_FACE[45][0] - GENERIC_FACE[36][0]) / max(np.hypot(*(lm68[45] - lm68[36])), 1e-6)
+    model = np.array(list(GENERIC_FACE.values()), np.float64)
+    obs = lm68[list(GENERIC_FACE)] + 0.5  # pixel centres at +0.5, as the cameras' K
+    K = pixel_intrinsics(intrinsics(focal), width, height)
+    # start frontal, at the distance where the outer eye corners are as far apart as observed: a
+    # free start can land on the mirror solution (the face upside down, roll 180 deg)
+    z0 = K[0, 0] * (GENERIC_FACE[45][0] - GENERIC_FACE[36][0]) / max(np.hypot(*(lm68[45] - lm68[36])), 1e-6)
+    centre = obs.mean(axis=0)
+    tvec = np.array([(centre[0] - K[0, 2]) / K[0, 0] * z0, (centre[1] - K[1, 2]) / K[1, 1] * z0, z0])
+    found, rvec, tvec = cv2.solvePnP(model, obs, K, None, np.zeros(3), tvec, useExtrinsicGuess=True,
+                                     flags=cv2.SOLVEPNP_ITERATIVE)
+    if not found:
+        raise FaceError(f"no head pose fits these landmarks ({width}x{height} px)")
+    y_angle, x_angle, z_angle = Rotation.from_rotvec(rvec.ravel()).as_euler("YXZ", degrees=True)
+    return HeadPose(-y_angle, -x_angle, z_angle, tuple(tvec.ravel()))
 
-    def residuals(p):
-        cam = Rotation.from_rotvec(p[:3]).apply(model) + p[3:] * z0
-        return ((cam[:, :2] / cam[:, 2:] * f + centre) - obs).ravel()
 
-    start = np.r_[0, 0, 0, (obs.mean(axis=0) - centre) / f, 1]
-    p = least_squares(residuals, start).x
-    y_angle, x_angle, z_angle = Rotation.from_rotvec(p[:3]).as_euler("YXZ", degrees=True)
-    return -y_angle, -x_angle, z_angle
-
-
-def head_pose(image, fov_deg: float = TRAINING_FOV_DEG) -> tuple[float, float, float]:
-    """(yaw, pitch, roll) in degrees of the largest face (see pose_from_landmarks); FaceError when
-    there is none. Landmark PnP with a generic face, not the paper's 3DMM-based estimator."""
+def head_pose(image, focal: float = DEFAULT_FOCAL) -> HeadPose:
+    """The head pose of the largest face (see pose_from_landmarks); FaceError when there is none.
+    Landmark PnP with a generic face, not the paper's 3DMM-based estimator."""
     u8 = _rgb_u8(image)
     faces = detect_faces(u8)
     if not faces:
         raise FaceError(f"no face found ({u8.shape[1]}x{u8.shape[0]} px)")
-    return pose_from_landmarks(landmarks(u8, faces[0]), u8.shape[1], u8.shape[0], fov_deg)
+    return pose_from_landmarks(landmarks(u8, faces[0]), u8.shape[1], u8.shape[0], focal)
 
 
-def apd(img_a, img_b, fov_deg: float = TRAINING_FOV_DEG) -> float:
+def apd(img_a, img_b, focal: float = DEFAULT_FOCAL) -> float:
     """Average pose distance: mean |difference| of yaw, pitch and roll in degrees between the faces
-    of two images; nan when either has no face (caller reports how many were skipped). Ours is
-    landmark PnP with a generic face; the paper's APD uses 3DMM (Deep3DFaceRecon) angles."""
+    of two images seen with normalized focal ``focal``; nan when either has no face (the caller
+    reports how many were skipped). Ours is landmark PnP with a generic face; the paper's APD uses
+    3DMM (Deep3DFaceRecon) angles."""
     try:
-        a, b = head_pose(img_a, fov_deg), head_pose(img_b, fov_deg)
+        a, b = head_pose(img_a, focal).angles, head_pose(img_b, focal).angles
     except FaceError:
         return math.nan
     return float(np.mean([abs((x - y + 180) % 360 - 180) for x, y in zip(a, b)]))

@@ -3,7 +3,7 @@
 Attributes are activated (the values a renderer consumes), one set of N Gaussians per object, or a
 batch of B sets with a leading B on every attribute (the model's output; ``g[b]`` is one set):
 
-* ``means``     (N, 3) world units (y up, the face looks toward +z, see CONVENTIONS.md).
+* ``means``     (N, 3) world units (y up, the face looks toward +z, see :mod:`datagen.cameras`).
 * ``quats``     (N, 4) rotation quaternions, wxyz, unit norm.
 * ``scales``    (N, 3) standard deviations along the rotated axes, world units, > 0.
 * ``opacities`` (N,)   in [0, 1].
@@ -35,9 +35,6 @@ SCALE_MIN = 1e-12
 SCALE_MAX = 1e30
 _FIELDS = ("means", "quats", "scales", "opacities", "colors")
 
-_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
-              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
 
 
 @dataclass
@@ -128,41 +125,22 @@ def save_ply(path, g: Gaussians) -> Path:
     return path
 
 
-def _parse_header(data: bytes):
-    """-> (offset of the body, [(element name, count, numpy dtype)]) for a binary little-endian PLY."""
-    end = data.find(b"end_header")
-    if not data.startswith(b"ply") or end < 0:
-        raise ValueError("not a PLY file (missing 'ply' magic or 'end_header')")
-    body = data.index(b"\n", end) + 1
-    elements = []
-    for line in data[:end].decode("ascii").splitlines()[1:]:
-        words = line.split()
-        if not words or words[0] in ("comment", "obj_info"):
-            continue
-        if words[0] == "format":
-            if words[1] != "binary_little_endian":
-                raise ValueError(f"unsupported PLY format {words[1]!r}; only binary_little_endian is read")
-        elif words[0] == "element":
-            elements.append((words[1], int(words[2]), []))
-        elif words[0] == "property":
-            if words[1] == "list":
-                raise ValueError("PLY list properties are not supported")
-            elements[-1][2].append((words[2], "<" + _PLY_TYPES[words[1]]))
-    return body, [(name, count, np.dtype(fields)) for name, count, fields in elements]
-
-
 def _read_vertices(path) -> np.ndarray:
-    data = Path(path).read_bytes()
-    offset, elements = _parse_header(data)
-    for name, count, dtype in elements:
-        if name == "vertex":
-            return np.frombuffer(data, dtype=dtype, count=count, offset=offset)
-        offset += count * dtype.itemsize
-    raise ValueError(f"{path}: no 'vertex' element")
+    """The ``vertex`` element of any PLY file (ASCII or binary, either byte order, other elements and
+    list properties allowed), read by plyfile, as a numpy structured array."""
+    from plyfile import PlyData, PlyHeaderParseError, PlyElementParseError
+    try:
+        ply = PlyData.read(str(path))
+    except (PlyHeaderParseError, PlyElementParseError, ValueError, EOFError) as e:
+        raise ValueError(f"{path}: not a readable PLY file ({e})") from None
+    if "vertex" not in ply:
+        raise ValueError(f"{path}: no 'vertex' element")
+    return ply["vertex"].data
 
 
 def load_ply(path) -> Gaussians:
-    """Read a 3DGS PLY (ours or another tool's; extra properties such as f_rest_* are ignored).
+    """Read a 3DGS PLY (ours or another tool's: any PLY encoding; extra properties such as f_rest_*
+    and other elements are ignored). Ours is written by :func:`ply_bytes` (a fixed layout, byte for byte).
 
     Returns activated float32 attributes: sigmoid opacity, exp scales, normalized quaternions and
     ``rgb = 0.5 + SH_C0 * f_dc`` clipped to [0, 1].

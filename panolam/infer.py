@@ -2,15 +2,18 @@
 
 Gaussians whose opacity is below ``prune_opacity`` are dropped before export; the error that costs
 is measured (PSNR of the pruned against the unpruned turntable renders) and reported. Below 1/255
-the rasterizer never draws a Gaussian, so that threshold is lossless. Outputs are written under a
-temporary name and renamed, so an interrupted run leaves nothing half-written. Turntables are
-H.264 MP4 (through PyAV's bundled FFmpeg) or animated GIF, by the file's suffix.
+the rasterizer never draws a Gaussian, so that threshold is lossless. The outputs are all or
+nothing: every file is encoded, then written under a temporary name beside its final one, then all
+are renamed; when any step fails (a read-only folder, a full disk, a path under a regular file)
+the files written so far are removed and a UserError names the path. Turntables are H.264 MP4
+(through PyAV's bundled FFmpeg) or animated GIF, by the file's suffix.
 """
 from __future__ import annotations
 
 import io
+import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -73,13 +76,14 @@ class InferenceReport:
     prune_psnr_db: float
     reconstruct_s: float
     render_ms: float
+    written: list = field(default_factory=list)  # the files written, in order
 
     def lines(self) -> list[str]:
         return [f"reconstruction {self.reconstruct_s * 1000:.0f} ms; render {self.render_ms:.1f} ms per view",
                 f"kept all {self.gaussians} Gaussians (none below the opacity threshold)"
                 if self.kept == self.gaussians else
                 f"kept {self.kept} of {self.gaussians} Gaussians; the pruned turntable matches the unpruned "
-                f"one at {self.prune_psnr_db:.1f} dB PSNR"]
+                f"one at {self.prune_psnr_db:.1f} dB PSNR", *(f"wrote {path}" for path in self.written)]
 
 
 def _encoded(image: Image.Image, **options) -> bytes:
@@ -148,7 +152,30 @@ def run(model: PanoLAM, image: np.ndarray, out_ply: Path | None, turntable: Path
         named = ["front", "left", "back", "right"]
         for name, img in zip(named, frames_uint8(render_set(kept, named_views(named), resolution))):
             outputs[views_dir / f"{name}.png"] = _encoded(Image.fromarray(img), format="PNG")
-    for path, data in outputs.items():
-        path.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write(path, data)
-    return InferenceReport(len(full), len(kept), loss_db, seconds, render_ms)
+    write_all(outputs)
+    return InferenceReport(len(full), len(kept), loss_db, seconds, render_ms, list(outputs))
+
+
+def write_all(outputs: dict[Path, bytes]) -> None:
+    """Write every file or none (module docstring); a UserError naming the path when one cannot be written."""
+    staged, created, done = {}, [], []
+    path = None
+    try:
+        for path, data in outputs.items():
+            created += reversed([p for p in [path.parent, *path.parent.parents] if not p.exists()])
+            path.parent.mkdir(parents=True, exist_ok=True)
+            staged[path] = atomic_write(path.with_name(f".{path.name}.partial-{os.getpid()}"), data)
+        for path, tmp in staged.items():
+            os.replace(tmp, path)
+            done.append(path)
+    except BaseException as e:  # an interrupt too: nothing is left behind
+        for p in [*staged.values(), *done]:
+            p.unlink(missing_ok=True)
+        for d in reversed(created):
+            try:
+                d.rmdir()
+            except OSError:
+                pass
+        if isinstance(e, OSError):
+            raise UserError(f"cannot write {path}: {e.strerror or e}") from None
+        raise

@@ -2,7 +2,9 @@
 
 Every function takes float tensors laid out (B, C, H, W) with values in [0, 1] (LPIPS needs C = 3)
 and returns one value per image, shape (B,), unless said otherwise. Images are compared as given:
-composite them on the same background first (CONVENTIONS.md, Metrics).
+composite them on the same background first (the datasets' background, :data:`panolam.data.BACKGROUND`).
+PSNR and SSIM are written here in torch, not taken from scikit-image: batched on the model's device,
+and SSIM differentiable for the D-SSIM loss; the tests check both against scikit-image's.
 
 SSIM is Wang et al.'s: an 11x11 Gaussian window with sigma 1.5 px, C1 = 0.01^2, C2 = 0.03^2
 (data range 1), population (not sample) covariances, averaged over the *valid* region only (the

@@ -1,5 +1,8 @@
 """Differentiable 3D Gaussian splatting in pure PyTorch, fast enough to train on a CPU.
 
+Written here because the libraries (gsplat, Inria's diff-gaussian-rasterization) rasterize on CUDA
+only; on a GPU, ``backend="auto"`` hands the work to gsplat.
+
 The API follows ``gsplat.rasterization``; every function in this module shares these conventions.
 
 Inputs
@@ -15,9 +18,10 @@ Camera
 Projection (EWA splatting)
     ``cov2d = J W Sigma W^T J^T + 0.3 I`` (px^2), with J the perspective Jacobian at the camera-space
     mean whose x/z and y/z are clamped to the image border plus 0.3 of the half field of view
-    (gsplat's frustum clamp). Culled: z < near_plane, z > far_plane or z <= 0; det(cov2d) <= 0;
-    opacity < 1/255 (it could never pass the alpha threshold); non-finite projections. The
-    projection is computed in float64 so that huge or tiny scales stay finite.
+    (gsplat's frustum clamp). Culled: z < near_plane, z > far_plane or z <= 0; opacity < 1/255 (it
+    could never pass the alpha threshold); a non-finite parameter or projection. The projection is
+    computed in float64 so that huge or tiny scales stay finite, with a cancellation-free
+    determinant (see project), positive for every finite Gaussian.
 Tiles
     radius r = ceil(3 sqrt(lambda_max(cov2d))) px. A Gaussian takes part only in the tiles
     (``tile_size`` px squares) that its box ``[u - r, u + r] x [v - r, v + r]`` touches, as in the
@@ -43,10 +47,10 @@ step and applies the closed-form 3DGS gradients
 ``dL/dalpha_i = T_i (c_i . g) - (sum_{j>i} w_j c_j . g) / (1 - alpha_i)`` (g = dL/d pixel), the
 suffix sums carried from the steps behind; pixel sums of dL/dexponent times [1, x, y, x^2, xy, y^2]
 give the gradients of the 2D mean, conic and opacity. No N x H x W tensor is ever built.
-``rasterize_reference`` is a brute-force implementation (every pixel against every Gaussian,
-autograd only) for tests. ``backend="auto"`` uses ``gsplat.rasterization`` for CUDA tensors when
-gsplat is installed (its constants differ slightly: alpha clamp 0.999, opacity-aware 3.33 sigma
-extent).
+:mod:`panolam.rasterizer_reference` is a separate brute-force implementation (every pixel against
+every Gaussian, autograd only) that the tests check this one against. ``backend="auto"`` uses
+``gsplat.rasterization`` for CUDA tensors when gsplat is installed (its constants differ slightly:
+alpha clamp 0.999, opacity-aware 3.33 sigma extent).
 """
 from __future__ import annotations
 
@@ -91,24 +95,47 @@ def rasterize(means, quats, scales, opacities, colors, viewmat, K, width: int, h
     """Render Gaussians -> (rgb (H, W, D), alpha (H, W, 1), expected depth (H, W, 1)).
 
     Conventions are in the module docstring. With viewmat (C, 4, 4) every output gets a leading C
-    (cameras are rendered one after the other; background may then be (C, D)). ``backend``:
-    "torch" (the pure-PyTorch path, CPU tensors), "gsplat" (``gsplat.rasterization``, CUDA only)
-    or "auto" (gsplat for CUDA tensors when it is importable, else torch).
+    (background may then be (C, D)); the pure-PyTorch path renders the cameras one after the
+    other, gsplat all of them in one call. ``backend``: "torch" (the pure-PyTorch path, CPU
+    tensors), "gsplat" (``gsplat.rasterization``, CUDA) or "auto" (gsplat for CUDA tensors when it
+    is importable, else torch). A Gaussian with a non-finite parameter is culled: it changes no
+    pixel and gets zero gradients.
     """
-    if viewmat.dim() == 3:
-        return _rasterize_cameras(rasterize, means, quats, scales, opacities, colors, viewmat, K, width, height,
-                                  background, near_plane=near_plane, far_plane=far_plane, tile_size=tile_size,
-                                  backend=backend)
+    means, quats, scales, opacities, colors = _finite_or_culled(means, quats, scales, opacities, colors)
     if _use_gsplat(backend, means):
         return _rasterize_gsplat(means, quats, scales, opacities, colors, viewmat, K, width, height, background,
                                  near_plane, far_plane, tile_size)
     if means.device.type != "cpu":
         raise ValueError(f"the pure-PyTorch rasterizer runs on CPU tensors, not {means.device}; "
                          "install gsplat for CUDA or move the tensors to the CPU")
+    if viewmat.dim() == 3:
+        return over_cameras(_rasterize_torch, means, quats, scales, opacities, colors, viewmat, K, width, height,
+                            background, near_plane=near_plane, far_plane=far_plane, tile_size=tile_size)
+    return _rasterize_torch(means, quats, scales, opacities, colors, viewmat, K, width, height, background,
+                            near_plane, far_plane, tile_size)
+
+
+def _rasterize_torch(means, quats, scales, opacities, colors, viewmat, K, width, height, background, near_plane,
+                     far_plane, tile_size):
+    """One camera through the fast path (projection, binning, block compositing)."""
     proj = project(means, quats, scales, opacities, viewmat, K, width, height, near_plane, far_plane)
     bins = bin_gaussians(proj, width, height, tile_size)
     acc = _Composite.apply(proj.means2d, proj.conics, proj.log_opacities, colors, proj.depths, bins)
-    return _finish(acc, background)
+    return finish(acc, background)
+
+
+def _finite_or_culled(means, quats, scales, opacities, colors):
+    """The inputs with every Gaussian that has a NaN or infinite parameter replaced by a harmless one
+    of opacity 0 (culled). ``torch.where`` passes no gradient to the replaced values, so a NaN
+    never reaches a gradient (arithmetic on it would, even multiplied by zero)."""
+    finite = (torch.isfinite(means).all(-1) & torch.isfinite(quats).all(-1) & torch.isfinite(scales).all(-1)
+              & torch.isfinite(opacities) & torch.isfinite(colors).all(-1))
+    if bool(finite.all()):
+        return means, quats, scales, opacities, colors
+    keep = finite[:, None]
+    identity = quats.new_tensor([1.0, 0.0, 0.0, 0.0])
+    return (torch.where(keep, means, 0.0), torch.where(keep, quats, identity), torch.where(keep, scales, 1.0),
+            torch.where(finite, opacities, 0.0), torch.where(keep, colors, 0.0))
 
 
 def world_to_camera(cam2world: torch.Tensor) -> torch.Tensor:
@@ -125,12 +152,12 @@ def render_views(g: Gaussians, cam2world: torch.Tensor, K_norm: torch.Tensor, re
                  backend: str = "auto"):
     """A batch of Gaussian sets (B, N, ...) seen by the dataset's cameras.
 
-    cam2world (B, V, 4, 4) OpenCV, K_norm (B, V, 3, 3) normalized intrinsics (CONVENTIONS.md),
+    cam2world (B, V, 4, 4) OpenCV, K_norm (B, V, 3, 3) normalized intrinsics (:mod:`datagen.cameras`),
     square images of ``resolution`` px; background (D,) or None (black). Returns rgb (B, V, H, W, D),
     alpha (B, V, H, W, 1), expected depth (B, V, H, W, 1).
     """
     viewmats = world_to_camera(cam2world.to(g.means.dtype))
-    Ks = pixel_intrinsics(K_norm.to(g.means.dtype), resolution, resolution)
+    Ks = pixel_intrinsics(K_norm.to(g.means.dtype), resolution, resolution)  # every set: all its cameras at once
     outs = [rasterize(g.means[b], g.quats[b], g.scales[b], g.opacities[b], g.colors[b], viewmats[b], Ks[b],
                       resolution, resolution, background, backend=backend) for b in range(g.means.shape[0])]
     return tuple(torch.stack(parts) for parts in zip(*outs))
@@ -144,6 +171,7 @@ class Projection(NamedTuple):
     depths: torch.Tensor         # (N,) camera-space z of the mean
     log_opacities: torch.Tensor  # (N,) log(opacity)
     cov2d: torch.Tensor          # (N, 3) float64 (xx, xy, yy) of the 2D covariance, px^2 (no gradient)
+    det2d: torch.Tensor          # (N,) float64 determinant of the 2D covariance, px^4 (no gradient; 1 if culled)
     radii: torch.Tensor          # (N,) float64 tile extent r in px (no gradient)
     valid: torch.Tensor          # (N,) bool: not culled
 
@@ -152,7 +180,11 @@ def project(means, quats, scales, opacities, viewmat, K, width: int, height: int
             far_plane: float = 1e10) -> Projection:
     """EWA projection of N Gaussians into one camera (differentiable, float64 inside).
 
-    Scales above ``SCALE_MAX`` world units are clamped to it, so float64 never overflows.
+    Scales above ``SCALE_MAX`` world units are clamped to it, so float64 never overflows. With M the
+    2x3 projected factor (rows m0, m1: cov2d = M M^T + EPS2D I), the determinant is computed as
+    ``|m0 x m1|^2 + EPS2D (|m0|^2 + |m1|^2) + EPS2D^2`` (Lagrange's identity): positive, and free of
+    the cancellation of ``a c - b^2`` that culls or distorts needle-like Gaussians (one axis of
+    1e6 px and more); the eigenvalue's ``mid^2 - det`` is likewise ``((a - c) / 2)^2 + b^2``.
     """
     wd = torch.float64
     view, Kd = viewmat.to(wd), K.detach().to(wd)
@@ -163,15 +195,16 @@ def project(means, quats, scales, opacities, viewmat, K, width: int, height: int
     fx, fy, cx, cy = Kd[0, 0], Kd[1, 1], Kd[0, 2], Kd[1, 2]
     jac = _perspective_jacobian(x, y, z, fx, fy, cx, cy, width, height)
     m = (jac @ view[:3, :3] @ quat_to_rotmat(quats.to(wd))) * scales.to(wd).clamp(max=SCALE_MAX)[:, None, :]
-    cov = m @ m.transpose(1, 2)
-    a, b, c = cov[:, 0, 0] + EPS2D, cov[:, 0, 1], cov[:, 1, 1] + EPS2D
-    det = a * c - b * b
-    ok = in_depth & (det > 0)
+    m0, m1 = m.unbind(1)
+    n0, n1 = m0.square().sum(-1), m1.square().sum(-1)
+    a, b, c = n0 + EPS2D, (m0 * m1).sum(-1), n1 + EPS2D
+    det = torch.linalg.cross(m0, m1).square().sum(-1) + EPS2D * (n0 + n1) + EPS2D * EPS2D
+    ok = in_depth & torch.isfinite(det)
     det = torch.where(ok, det, torch.ones_like(det))
     conics = torch.stack([c, -b, a], -1) / det[:, None]
     means2d = torch.stack([fx * x / z + cx, fy * y / z + cy], -1)
-    mid = 0.5 * (a + c)
-    radii = torch.ceil(EXTENT_SIGMAS * torch.sqrt(mid + torch.sqrt((mid * mid - det).clamp_min(LAMBDA_FLOOR))))
+    spread = (0.25 * (a - c).square() + b * b).clamp_min(LAMBDA_FLOOR)  # = mid^2 - det, floored
+    radii = torch.ceil(EXTENT_SIGMAS * torch.sqrt(0.5 * (a + c) + torch.sqrt(spread)))
     dtype = means.dtype
     valid = ok & (opacities >= ALPHA_MIN) & torch.isfinite(means2d.to(dtype)).all(-1)
     keep = valid[:, None]
@@ -181,6 +214,7 @@ def project(means, quats, scales, opacities, viewmat, K, width: int, height: int
         depths=torch.where(valid, z, 0.0).to(dtype),
         log_opacities=torch.log(torch.where(valid, opacities, torch.ones_like(opacities))),
         cov2d=torch.where(keep, torch.stack([a, b, c], -1), 0.0).detach(),
+        det2d=torch.where(valid, det, 1.0).detach(),
         radii=torch.where(valid, radii, 0.0).detach(),
         valid=valid,
     )
@@ -252,7 +286,7 @@ def bin_gaussians(proj: Projection, width: int, height: int, tile_size: int = 16
     sxx, sxy, syy = proj.cov2d.unbind(-1)
     reach = torch.where(proj.valid, 2.0 * (proj.log_opacities.detach().double() - math.log(ALPHA_MIN)), 0.0)
     reach = reach + _REACH_MARGIN                       # the ellipse is d^T cov2d^-1 d <= reach
-    det = torch.where(proj.valid, sxx * syy - sxy * sxy, 1.0)
+    det = proj.det2d
     half_y = torch.sqrt(reach * syy)
     # Block rows holding a pixel-centre row inside the ellipse, within the tile box and the image.
     by0 = torch.maximum(y0 * per_tile, torch.floor(torch.ceil(v - half_y - 0.5) / block).clamp(0, blocks_y).long())
@@ -302,7 +336,7 @@ def _ellipse_columns(sxx, sxy, syy, det, reach, y_lo, y_hi):
 # Helpers of the public API
 
 
-def _rasterize_cameras(render, means, quats, scales, opacities, colors, viewmats, Ks, width, height, background,
+def over_cameras(render, means, quats, scales, opacities, colors, viewmats, Ks, width, height, background,
                        **options):
     """Loop ``render`` over C cameras and stack the outputs."""
     C = viewmats.shape[0]
@@ -313,7 +347,7 @@ def _rasterize_cameras(render, means, quats, scales, opacities, colors, viewmats
     return tuple(torch.stack(parts) for parts in zip(*outs))
 
 
-def _finish(acc, background):
+def finish(acc, background):
     """(H, W, D + 2) sums [w c, w z, w] -> (rgb, alpha, expected depth), background composited."""
     colors, depth_sum, alpha = acc[..., :-2], acc[..., -2:-1], acc[..., -1:]
     depth = depth_sum / alpha.clamp_min(DEPTH_ALPHA_FLOOR)
@@ -338,16 +372,19 @@ def _use_gsplat(backend: str, means) -> bool:
 
 def _rasterize_gsplat(means, quats, scales, opacities, colors, viewmat, K, width, height, background, near_plane,
                       far_plane, tile_size):
-    """One camera through ``gsplat.rasterization`` ("RGB+ED"), background composited here."""
+    """All cameras in one ``gsplat.rasterization`` call ("RGB+ED"), the background composited by
+    gsplat (``backgrounds=``, one row per camera)."""
     from gsplat import rasterization
 
-    render, alpha, _ = rasterization(means, quats, scales, opacities, colors, viewmat[None], K[None], width, height,
+    cameras = viewmat.dim() == 3
+    viewmats = viewmat if cameras else viewmat[None]
+    Ks = K.expand(len(viewmats), 3, 3) if cameras else K[None]
+    backgrounds = None if background is None else background.expand(len(viewmats), colors.shape[-1])
+    render, alpha, _ = rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
                                      near_plane=near_plane, far_plane=far_plane, tile_size=tile_size, eps2d=EPS2D,
-                                     render_mode="RGB+ED", rasterize_mode="classic")
-    colors, depth, alpha = render[0, ..., :-1], render[0, ..., -1:], alpha[0]
-    if background is not None:
-        colors = colors + (1.0 - alpha) * background
-    return colors, alpha, depth
+                                     backgrounds=backgrounds, render_mode="RGB+ED", rasterize_mode="classic")
+    out = render[..., :-1], alpha, render[..., -1:]
+    return out if cameras else tuple(t[0] for t in out)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -564,96 +601,3 @@ class _Composite(torch.autograd.Function):
         grads = _composite_backward(_image_to_blocks(grad, ctx.bins), ctx.steps, ctx.n_gaussians, ctx.geo)
         return (grads[:, _U:_V + 1], grads[:, _A:_C + 1], grads[:, _LOGO], grads[:, _FEAT:_FEAT + d],
                 grads[:, _FEAT + d], None)
-
-
-# ---------------------------------------------------------------------------------------------
-# Reference: brute force, autograd only (used by the tests)
-
-
-def rasterize_reference(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int,
-                        background=None, near_plane: float = 0.01, far_plane: float = 1e10, tile_size: int = 16):
-    """``rasterize`` written as directly as possible, for checking it: same conventions and constants.
-
-    The projection is re-derived per Gaussian (3D covariance, camera covariance, Jacobian, 2x2
-    inverse) in the input dtype; then every pixel visits every Gaussian in depth order with the
-    sequential transmittance update of the CUDA rasterizers. O(N H W) memory and a Python loop over
-    the Gaussians: small scenes only. Use float64 for tight comparisons.
-    """
-    if viewmat.dim() == 3:
-        return _rasterize_cameras(rasterize_reference, means, quats, scales, opacities, colors, viewmat, K, width,
-                                  height, background, near_plane=near_plane, far_plane=far_plane,
-                                  tile_size=tile_size)
-    mean2d, conic, z, radius, valid = _reference_projection(means, quats, scales, opacities, viewmat, K, width,
-                                                            height, near_plane, far_plane)
-    pixels = _reference_pixel_centres(width, height, means.dtype)                       # (P, 2)
-    d = pixels[:, None, :] - mean2d[None, :, :]                                          # (P, N, 2)
-    power = -0.5 * torch.einsum("pni,nij,pnj->pn", d, conic, d)
-    alpha = (opacities * torch.exp(power)).clamp(max=ALPHA_MAX)
-    covered = _reference_tile_cover(mean2d.detach(), radius, width, height, tile_size) & valid
-    alpha = torch.where(covered & (alpha >= ALPHA_MIN), alpha, torch.zeros_like(alpha))
-    trans = torch.ones(pixels.shape[0], dtype=means.dtype)
-    stopped = torch.zeros(pixels.shape[0], dtype=torch.bool)
-    rgb_sum = torch.zeros(pixels.shape[0], colors.shape[-1], dtype=means.dtype)
-    depth_sum = torch.zeros(pixels.shape[0], dtype=means.dtype)
-    alpha_sum = torch.zeros(pixels.shape[0], dtype=means.dtype)
-    for i in torch.argsort(z.detach(), stable=True).tolist():
-        next_trans = trans * (1.0 - alpha[:, i])
-        stopped = stopped | (next_trans < T_MIN)
-        w = torch.where(stopped, torch.zeros_like(trans), alpha[:, i] * trans)
-        rgb_sum = rgb_sum + w[:, None] * colors[i]
-        depth_sum = depth_sum + w * z[i]
-        alpha_sum = alpha_sum + w
-        trans = torch.where(stopped, trans, next_trans)
-    acc = torch.cat([rgb_sum, depth_sum[:, None], alpha_sum[:, None]], -1).reshape(height, width, -1)
-    return _finish(acc, background)
-
-
-def _reference_projection(means, quats, scales, opacities, viewmat, K, width, height, near_plane, far_plane):
-    """-> means2d (N, 2), conic matrices (N, 2, 2), depths (N,), radii (N,), valid (N,)."""
-    dtype = means.dtype
-    rot_w, trans_w = viewmat[:3, :3].to(dtype), viewmat[:3, 3].to(dtype)
-    cam = means @ rot_w.T + trans_w
-    z = cam[:, 2]
-    in_depth = (z >= near_plane) & (z <= far_plane) & (z > 0)
-    z_safe = torch.where(in_depth, z, torch.ones_like(z))
-    norm = quats.norm(dim=-1, keepdim=True)
-    identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=dtype)
-    q = torch.where(norm > 0, quats / norm.clamp_min(1e-12), identity)
-    w, v = q[:, :1, None], q[:, 1:]
-    cross = torch.zeros(len(q), 3, 3, dtype=dtype)
-    cross[:, 0, 1], cross[:, 0, 2], cross[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
-    cross = cross - cross.transpose(1, 2)
-    eye = torch.eye(3, dtype=dtype)
-    rot = (w * w - (v * v).sum(-1)[:, None, None]) * eye + 2 * v[:, :, None] * v[:, None, :] + 2 * w * cross
-    cov_world = rot @ torch.diag_embed(scales * scales) @ rot.transpose(1, 2)
-    cov_cam = rot_w @ cov_world @ rot_w.T
-    fx, fy, cx, cy = (K[i, j].to(dtype) for i, j in ((0, 0), (1, 1), (0, 2), (1, 2)))
-    lim_x, lim_y = 0.3 * 0.5 * width / fx, 0.3 * 0.5 * height / fy
-    xz = torch.clamp(cam[:, 0] / z_safe, -cx / fx - lim_x, (width - cx) / fx + lim_x)
-    yz = torch.clamp(cam[:, 1] / z_safe, -cy / fy - lim_y, (height - cy) / fy + lim_y)
-    jac = torch.zeros(len(q), 2, 3, dtype=dtype)
-    jac[:, 0, 0], jac[:, 0, 2] = fx / z_safe, -fx * xz / z_safe
-    jac[:, 1, 1], jac[:, 1, 2] = fy / z_safe, -fy * yz / z_safe
-    cov2d = jac @ cov_cam @ jac.transpose(1, 2) + EPS2D * torch.eye(2, dtype=dtype)
-    det = torch.linalg.det(cov2d)
-    valid = in_depth & (det > 0) & (opacities >= ALPHA_MIN)
-    conic = torch.linalg.inv(torch.where(valid[:, None, None], cov2d, torch.eye(2, dtype=dtype)))
-    mid = 0.5 * (cov2d[:, 0, 0] + cov2d[:, 1, 1]).detach()
-    lam_max = mid + torch.sqrt((mid * mid - det.detach()).clamp_min(LAMBDA_FLOOR))
-    radius = torch.ceil(EXTENT_SIGMAS * torch.sqrt(lam_max))
-    mean2d = torch.stack([fx * cam[:, 0] / z_safe + cx, fy * cam[:, 1] / z_safe + cy], -1)
-    return mean2d, conic, z, radius, valid
-
-
-def _reference_pixel_centres(width, height, dtype):
-    rows, cols = torch.meshgrid(torch.arange(height, dtype=dtype), torch.arange(width, dtype=dtype), indexing="ij")
-    return torch.stack([cols, rows], -1).reshape(-1, 2) + 0.5
-
-
-def _reference_tile_cover(mean2d, radius, width, height, tile_size):
-    """(P, N) bool: the pixel's tile lies in the Gaussian's tile box."""
-    rows, cols = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
-    tile_x, tile_y = (cols.reshape(-1, 1) // tile_size), (rows.reshape(-1, 1) // tile_size)
-    u, v, r = mean2d[:, 0].double(), mean2d[:, 1].double(), radius.double()
-    return ((tile_x >= torch.floor((u - r) / tile_size)) & (tile_x < torch.ceil((u + r) / tile_size))
-            & (tile_y >= torch.floor((v - r) / tile_size)) & (tile_y < torch.ceil((v + r) / tile_size)))

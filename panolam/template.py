@@ -1,6 +1,6 @@
 """The head template (embedded procedural mesh or an official FLAME file) and its densification.
 
-Units: world units (CONVENTIONS.md: y up, face toward +z, head at the origin). ``Template.units_per_metre``
+Units: world units (:mod:`datagen.cameras`: y up, face toward +z, head at the origin). ``Template.units_per_metre``
 converts the paper's FLAME-metre lengths: ``world = metres * units_per_metre``.
 
 Densification (paper): faces larger than an area threshold are split into 4 by their edge midpoints,
@@ -307,15 +307,18 @@ class Densification:
 
 
 class _Topology:
-    """Face areas and the unique edges of a template (edge e joins edges[e]; face_edges (F, 3) -> e)."""
+    """Face areas and the unique edges of a template (edge e joins edges[e]; face_edges (F, 3) -> e),
+    from trimesh; edges in lexicographic order, which fixes the order of the dense points."""
 
     def __init__(self, t: Template):
-        v = t.vertices.astype(np.float64)
-        a, b, c = (v[t.faces[:, k]] for k in range(3))
-        self.areas = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-        pairs = np.sort(t.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-        self.edges, inverse = np.unique(pairs, axis=0, return_inverse=True)
-        self.face_edges = inverse.reshape(-1, 3)
+        import trimesh
+        mesh = trimesh.Trimesh(t.vertices.astype(np.float64), t.faces, process=False, validate=False)
+        self.areas = mesh.area_faces
+        order = np.lexsort(mesh.edges_unique.T[::-1])
+        rank = np.empty_like(order)
+        rank[order] = np.arange(len(order))
+        self.edges = mesh.edges_unique[order]
+        self.face_edges = rank[mesh.edges_unique_inverse].reshape(-1, 3)  # edges of face f: (v0 v1, v1 v2, v2 v0)
 
     def levels(self, threshold: float, max_passes: int) -> tuple[np.ndarray, np.ndarray]:
         """Subdivision level of every face (a split quarters the area) and of every edge (its finest face)."""

@@ -12,18 +12,17 @@ perceptual term is LPIPS when its weights are given, otherwise D-SSIM ``(1 - SSI
 says which).
 
 Optimizer: Adam, linear warm-up then cosine decay, gradient-norm clipping; bf16 autocast on CUDA.
-A checkpoint (written atomically) holds model, optimizer, scheduler, RNG states, step, both configs
-and what the run trains on (manifest and dataset hashes, the training subjects); since the data
-order is a pure function of (seed, sample index), resuming continues exactly, and a resume with
-another manifest is refused. Several processes (``torchrun`` or ``panolam train --nproc N``) average gradients with
+A checkpoint (:mod:`panolam.checkpoints`) holds model, optimizer, scheduler, RNG states, step, both
+configs and what the run trains on (manifest and dataset hashes, the training subjects); since the
+data order is a pure function of (seed, sample index), resuming continues exactly, and a resume
+with another manifest is refused. Several processes (:mod:`panolam.launch`) average gradients with
 torch.distributed (gloo on CPU, nccl on CUDA); each takes its own slice of every global batch.
 """
 from __future__ import annotations
 
-import dataclasses
+import contextlib
 import math
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
@@ -32,51 +31,21 @@ import torch.distributed as dist
 import torch.nn.functional as F
 
 from datagen.errors import UserError
-from datagen.files import atomic_write, sha256_file
+from datagen.files import sha256_file
 from datagen.manifests import read_manifest
 
-from .config import PATH_FIELDS, ModelConfig
+from .checkpoints import CHECKPOINT, read_checkpoint, same_model_config, save_checkpoint
+from .config import ModelConfig, TrainConfig
 from .data import BACKGROUND, TrainingSamples, Views, collate, resized
 from .metrics import dssim_loss, psnr
 from .model import PanoLAM, Reconstruction
 from .rasterizer import render_views
 
-CHECKPOINT = "checkpoint.pt"
-HISTORY_KEPT = 10_000  # most recent per-step log entries carried in a checkpoint (TensorBoard has them all)
+STEP_TIMES_KEPT = 5  # the time limit predicts the next step from the slowest of this many recent ones
 
 
 class TrainingError(UserError, RuntimeError):
     """Training cannot go on (non-finite loss, incompatible checkpoint)."""
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    steps: int = 2000
-    batch_size: int = 2                 # per process
-    views_per_sample: int = 6           # N_v: one input + N_v - 1 targets
-    render_resolution: int = 64         # px of the supervised renders (targets are area-resized)
-    lr: float = 4e-4
-    betas: tuple = (0.9, 0.95)
-    warmup_steps: int = 100
-    grad_clip: float = 1.0
-    lambda_l1: float = 1.0              # lambda_1
-    lambda_perceptual: float = 1.0      # lambda_2
-    lambda_gaussians: float = 1.0       # lambda_3
-    lambda_triplane_rgb: float = 0.1    # lambda_4
-    lambda_mask: float = 1.0            # lambda_5
-    lambda_planes: float = 1e-4         # lambda_6
-    lpips_backbone: Optional[str] = None
-    lpips_lin: Optional[str] = None
-    lpips_net: str = "alex"
-    seed: int = 0
-    num_workers: int = 0
-    log_every: int = 10
-    image_every: int = 200
-    checkpoint_every: int = 100
-    time_limit_s: Optional[float] = None  # stop (with a checkpoint) after this long
-
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
 
 
 # -- losses ---------------------------------------------------------------------------------------------
@@ -151,43 +120,13 @@ def compute_losses(model: PanoLAM, batch: Views, cfg: TrainConfig, perceptual: P
     return total, parts, renders
 
 
-# -- schedule, checkpoints --------------------------------------------------------------------------------
+# -- schedule --------------------------------------------------------------------------------
 def lr_factor(step: int, cfg: TrainConfig) -> float:
     """Linear warm-up to 1, then cosine decay to 0 at ``cfg.steps``."""
     if step < cfg.warmup_steps:
         return (step + 1) / cfg.warmup_steps
     progress = (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps)
     return 0.5 * (1 + math.cos(math.pi * min(1.0, progress)))
-
-
-def save_checkpoint(out: Path, model, optimizer, scheduler, step: int, model_cfg: ModelConfig, cfg: TrainConfig,
-                    history: list, data: Optional[dict] = None) -> Path:
-    """Write ``out/checkpoint.pt`` atomically (temporary name, then rename).
-
-    ``data``: what the run trains on (:func:`training_data`), checked on resume and by evaluation.
-    """
-    core = model.module if hasattr(model, "module") else model
-    state = {"format": "panolam-checkpoint/1", "step": step, "model": core.state_dict(),
-             "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
-             "rng": torch.get_rng_state(), "model_config": model_cfg.to_dict(), "train_config": cfg.to_dict(),
-             "history": history[-HISTORY_KEPT:], "data": data or {}}
-    return atomic_write(out / CHECKPOINT, lambda f: torch.save(state, f))
-
-
-def read_checkpoint(path) -> dict:
-    """A checkpoint file or a run directory holding one; one-line errors."""
-    path = Path(path)
-    if path.is_dir():
-        path = path / CHECKPOINT
-    if not path.exists():
-        raise UserError(f"{path}: no checkpoint here")
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # torch raises several types for truncated or foreign files
-        raise UserError(f"{path}: not a readable checkpoint ({type(e).__name__})") from None
-    if not isinstance(state, dict) or state.get("format") != "panolam-checkpoint/1":
-        raise UserError(f"{path}: not a PanoLAM checkpoint")
-    return state
 
 
 def training_data(dataset: TrainingSamples, manifest) -> dict:
@@ -197,31 +136,6 @@ def training_data(dataset: TrainingSamples, manifest) -> dict:
             "manifest_sha256": sha256_file(manifest),
             "dataset_index_sha256": m["header"].get("dataset_index_sha256"),
             "subjects": [key for key, _ in dataset.subjects]}
-
-
-def _same_config(a: dict, b: dict) -> bool:
-    """Equal model configs, file locations aside (the weights they name are in the checkpoint)."""
-    return {k: v for k, v in a.items() if k not in PATH_FIELDS} == {k: v for k, v in b.items() if k not in PATH_FIELDS}
-
-
-def load_model(path, device="cpu", **overrides) -> PanoLAM:
-    """The trained model of a checkpoint, in eval mode; ``overrides`` replace config fields (file paths, M_D)."""
-    return model_from_checkpoint(read_checkpoint(path), path, device, **overrides)
-
-
-def model_from_checkpoint(state: dict, path, device="cpu", **overrides) -> PanoLAM:
-    """:func:`load_model` on a checkpoint already read (:func:`read_checkpoint`) from ``path``."""
-    try:
-        cfg = ModelConfig.from_dict(state["model_config"]).replace(**overrides)
-    except (TypeError, ValueError) as e:
-        raise UserError(f"{path}: its model config does not fit this version ({e})") from None
-    model = PanoLAM(cfg)
-    try:
-        model.load_state_dict(state["model"])
-    except RuntimeError as e:
-        first = str(e).splitlines()[0]
-        raise UserError(f"{path}: checkpoint does not fit config {cfg.name!r} ({first})") from None
-    return model.to(device).eval()
 
 
 # -- the loop -----------------------------------------------------------------------------------------------
@@ -240,7 +154,7 @@ def check_start(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, r
     state = None
     if resume:
         state = read_checkpoint(out)
-        if not _same_config(state["model_config"], model_cfg.to_dict()):
+        if not same_model_config(state["model_config"], model_cfg.to_dict()):
             raise UserError(f"{out}: the checkpoint was trained with config {state['model_config']['name']!r}; "
                             f"resume with the same config")
     elif (out / CHECKPOINT).exists():
@@ -282,14 +196,20 @@ class _Steps(torch.utils.data.Sampler):
 
 
 def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume: bool = False,
-          device: str = "cpu", progress: bool = True, until: Optional[int] = None) -> dict:
+          device: str = "cpu", progress: bool = True, until: Optional[int] = None,
+          started: Optional[float] = None) -> dict:
     """Train (or resume) a run in ``out``; returns the final log entry. Rank 0 writes files.
 
     ``until``: stop (with a checkpoint) after this step without changing the schedule, which is set
     by ``cfg.steps``; resuming then continues exactly (used to evaluate a run part way).
+    ``started``: the ``time.monotonic()`` the time limit counts from (default: now), e.g. when the
+    command started. Before each step the run predicts when it would end (the slowest of the last
+    few steps, and the last checkpoint's write) and stops with a checkpoint instead of overrunning;
+    the first step always runs.
     """
     rank, world = _distributed()
     out = Path(out)
+    started = time.monotonic() if started is None else started
     torch.manual_seed(cfg.seed)
     state, dataset, data_info = check_start(data, manifest, model_cfg, cfg, out, resume)
     model = PanoLAM(model_cfg).to(device)
@@ -314,9 +234,10 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
         _log_text(out, f"perceptual loss: {perceptual.name}; {len(dataset)} training subjects; "
                        f"{world} process(es); start at step {step}")
     bar = _progress(progress and rank == 0, step, cfg.steps)
-    started, entry, start = time.monotonic(), {}, step
+    clock = _Clock(started, cfg.time_limit_s)
+    entry, start = {}, step
     model.train()
-    for batch in loader:
+    for batch in _batches(loader):
         batch = batch.to(device)
         t0 = time.perf_counter()
         loss, parts, renders = compute_losses(model, batch, cfg, perceptual, autocast=device.startswith("cuda"))
@@ -331,8 +252,7 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
         loss_v, norm_v, *part_v = torch.stack([loss.detach().float(), grad_norm.float(),
                                                *(v.detach().float() for v in parts.values())]).tolist()
         # Every process takes the same decisions: a bad loss anywhere or the time limit stops them all.
-        bad_loss, out_of_time = _agreed(world, device, not math.isfinite(loss_v),
-                                        cfg.time_limit_s is not None and time.monotonic() - started > cfg.time_limit_s)
+        bad_loss, out_of_time = _agreed(world, device, not math.isfinite(loss_v), clock.next_step_overruns())
         if bad_loss:
             bad = ", ".join(f"{k}={v:.4g}" for k, v in zip(parts, part_v))
             raise TrainingError(f"non-finite loss at step {step} (subjects {batch.key} on process {rank}): {bad}")
@@ -340,7 +260,7 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
             raise TrainingError(f"non-finite gradient at step {step} (subjects {batch.key} on process {rank}); "
                                 f"the last checkpoint is intact")
         lr = scheduler.get_last_lr()[0]
-        optimizer.step()
+        _update(optimizer, params, step, lr)
         scheduler.step()
         step += 1
         entry = {"step": step, "loss": loss_v, "lr": lr, "grad_norm": norm_v,
@@ -350,24 +270,89 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
             bar.update(1)
             bar.set_postfix(loss=f"{entry['loss']:.4f}", psnr=f"{entry['psnr_dense']:.2f}")
         if writer is not None:
-            if step % cfg.log_every == 0 or step == cfg.steps:
+            logged = step % cfg.log_every == 0 or step == cfg.steps
+            _log_text(out, f"step {step}: loss {entry['loss']:.4f}, PSNR {entry['psnr_dense']:.2f} dB, "
+                           f"lr {entry['lr']:.2e}, {entry['seconds']:.2f} s/step", echo=logged and bar is None)
+            if logged:
                 for k, v in entry.items():
                     if k != "step":
                         writer.add_scalar(f"train/{k}", v, step)
-                _log_text(out, f"step {step}: loss {entry['loss']:.4f}, PSNR {entry['psnr_dense']:.2f} dB, "
-                               f"lr {entry['lr']:.2e}, {entry['seconds']:.2f} s/step", echo=bar is None)
             if step % cfg.image_every == 0 or step == 1:
                 writer.add_image("train/input|dense|coarse|target", _grid(batch, renders), step)
         stop = out_of_time or (until is not None and step >= until)
         if rank == 0 and (step % cfg.checkpoint_every == 0 or step == cfg.steps or stop):
-            save_checkpoint(out, model, optimizer, scheduler, step, model_cfg, cfg, history, data_info)
+            with clock.checkpoint():
+                save_checkpoint(out, model, optimizer, scheduler, step, model_cfg, cfg, history, data_info)
         if stop:
+            if out_of_time and rank == 0:
+                _log_text(out, f"stopped at step {step}: another step would end after the {cfg.time_limit_s:g} s "
+                               f"time limit; --resume continues", echo=bar is None)
             break
     if bar is not None:
         bar.close()
     if writer is not None:
         writer.close()
     return entry
+
+
+def _batches(loader):
+    """The loader's batches; a UserError raised in a loader worker keeps its one line (torch re-raises
+    it in this process with the worker's traceback appended)."""
+    batches = iter(loader)
+    while True:
+        try:
+            batch = next(batches)
+        except StopIteration:
+            return
+        except UserError as e:
+            lines = str(e).strip().splitlines()
+            if len(lines) > 1:  # "...Traceback...", last line "module.Type: message"
+                raise type(e)(lines[-1].partition(": ")[2] or lines[-1]) from None
+            raise
+        yield batch
+
+
+def _update(optimizer, params, step: int, lr: float) -> None:
+    """The optimizer step; a TrainingError when it cannot be taken or leaves a parameter non-finite
+    (a learning rate too large for float32, say: the checkpoint on disk is still the last good one)."""
+    what = f"non-finite update at step {step} (learning rate {lr:.3g})"
+    try:
+        optimizer.step()
+    except RuntimeError as e:
+        if "overflow" not in str(e):
+            raise
+        raise TrainingError(f"{what}: the step overflows float32; the last checkpoint is intact") from None
+    if not torch.isfinite(torch.nn.utils.get_total_norm([p.detach() for p in params], float("inf"))):
+        raise TrainingError(f"{what}: parameters are no longer finite; the last checkpoint is intact")
+
+
+class _Clock:
+    """The time limit: whether one more step and the checkpoint after it would end past it.
+
+    A step's time runs from one call of :meth:`next_step_overruns` to the next (loading, forward,
+    backward, update, logging), without the checkpoint writes in between, which count apart.
+    """
+
+    def __init__(self, started: float, limit_s: Optional[float]):
+        self.deadline = None if limit_s is None else started + limit_s
+        self.last = time.monotonic()
+        self.steps: list[float] = []
+        self.checkpoint_s = 0.0  # the last checkpoint write
+        self.writing_s = 0.0     # checkpoint writes since the last call
+
+    def next_step_overruns(self) -> bool:
+        """Called once per step: records the step's duration and predicts the end of the next one."""
+        now = time.monotonic()
+        self.steps = (self.steps + [now - self.last - self.writing_s])[-STEP_TIMES_KEPT:]
+        self.last, self.writing_s = now, 0.0
+        return self.deadline is not None and now + max(self.steps) + self.checkpoint_s > self.deadline
+
+    @contextlib.contextmanager
+    def checkpoint(self):
+        t0 = time.monotonic()
+        yield
+        self.checkpoint_s = time.monotonic() - t0
+        self.writing_s += self.checkpoint_s
 
 
 def _grid(batch: Views, renders: dict) -> torch.Tensor:
@@ -398,14 +383,3 @@ def _progress(enabled: bool, start: int, total: int):
         return None
     from tqdm import tqdm
     return tqdm(total=total, initial=start, desc="train", dynamic_ncols=True)
-
-
-def main(argv=None) -> int:
-    """``python -m panolam.train ...`` = ``panolam train ...`` (torchrun sets the process group up)."""
-    import sys
-    from .cli import main as cli_main
-    return cli_main(["train", *(sys.argv[1:] if argv is None else argv)])
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -5,9 +5,11 @@ import math
 
 import numpy as np
 import pytest
-from PIL import Image
+from PIL import Image, UnidentifiedImageError
 from scipy.spatial.transform import Rotation
 
+from datagen.cameras import (FOV_MEAN, RADIUS_MEAN, camera_position, fov_to_focal, intrinsics, look_at,
+                             pixel_intrinsics)
 from datagen.shards import to_uint8
 from panolam import faces
 from panolam.faces import (CENTRE_BELOW_EYES, CROP_SIDE, EYE_DISTANCE, EYE_TO_MOUTH, GENERIC_FACE,
@@ -130,7 +132,7 @@ def test_photo_failures_are_one_line_face_errors(photo, tmp_path):
 @needs_dlib
 def test_two_faces_need_pick_largest(photo):
     pair = np.concatenate([photo, photo], axis=1)
-    with pytest.raises(FaceError, match="2 faces found.*pick='largest'"):
+    with pytest.raises(FaceError, match="2 faces found.*--pick largest"):
         prepare_photo(pair, OUT)
     crop, info = prepare_photo(pair, OUT, pick="largest")
     assert info["n_faces"] == 2 and crop.shape == (OUT, OUT, 3)
@@ -169,35 +171,97 @@ def test_csim_of_a_render_the_detector_misses_uses_the_targets_face_box(photo):
     assert math.isnan(csim(photo, data.chelsea(), box_from_b=True))  # no face in the target
 
 
-def project(yaw, pitch, roll, size=512, fov=faces.TRAINING_FOV_DEG, distance=700.0):
-    """68-point array holding GENERIC_FACE seen at these angles (other points left at zero)."""
-    rot = Rotation.from_euler("YXZ", [-yaw, -pitch, roll], degrees=True)
-    f = 0.5 * size / math.tan(math.radians(fov) / 2)
+MM = 1e-3 / 4.5  # world units per mm of GENERIC_FACE: eye corners 90 mm apart -> 0.02 units, a head-sized face
+FACE_TO_WORLD = np.diag([1.0, -1.0, -1.0])  # GENERIC_FACE axes (x right, y down, z away) of a face looking at +z
+
+
+def seen_from(yaw_deg, pitch_deg, radius=RADIUS_MEAN, fov=FOV_MEAN, size=512, head_yaw=0.0, head_roll=0.0):
+    """68-point array (GENERIC_FACE's points, the others zero) of a generic face at the origin, turned
+    by head_yaw about the world's up axis and tilted by head_roll, seen by the datasets' camera at
+    (yaw, pitch, radius) looking at it: datagen.cameras' look-at and EG3D intrinsics, dlib's pixel
+    convention (centres at integers). Returns the landmarks and the face's rotation in the camera."""
+    c2w = look_at(camera_position(yaw_deg, pitch_deg, radius))
+    w2c = np.linalg.inv(c2w)
+    K = pixel_intrinsics(intrinsics(fov_to_focal(fov)), size, size)
+    turn = Rotation.from_euler("yz", [head_yaw, head_roll], degrees=True).as_matrix()
+    face_to_world = turn @ FACE_TO_WORLD
     lm = np.zeros((68, 2))
     for i, p in GENERIC_FACE.items():
-        cam = rot.apply(p) + [10.0, -5.0, distance]
-        lm[i] = cam[:2] / cam[2] * f + size / 2
-    return lm
+        cam = w2c[:3, :3] @ (face_to_world @ (np.asarray(p) * MM)) + w2c[:3, 3]
+        uv = K @ cam
+        lm[i] = uv[:2] / uv[2] - 0.5
+    return lm, w2c[:3, :3] @ face_to_world
 
 
-@pytest.mark.parametrize("angles", [(0, 0, 0), (30, -10, 5), (-40, 15, -20), (10, 25, 0)])
-def test_pose_from_landmarks_recovers_angles(angles):
-    assert np.allclose(pose_from_landmarks(project(*angles), 512, 512), angles, atol=0.05)
+def euler_of(rotation) -> tuple[float, float, float]:
+    """(yaw, pitch, roll) of a face rotation in camera axes, as HeadPose defines them."""
+    y, x, z = Rotation.from_matrix(rotation).as_euler("YXZ", degrees=True)
+    return -y, -x, z
+
+
+@pytest.mark.parametrize("yaw, pitch, head_yaw, head_roll", [(0, 0, 0, 0), (25, 0, 0, 0), (-30, 12, 0, 0),
+                                                             (10, -20, 15, 0), (0, 8, 0, 20), (35, 20, -10, -15)])
+def test_head_pose_through_the_datasets_cameras(yaw, pitch, head_yaw, head_roll):
+    """Landmarks projected by the datasets' own camera code (EG3D focal) give back the face's pose in
+    that camera and its distance: a pinhole focal 0.5 W / tan(fov / 2) would put it sqrt(2) nearer."""
+    lm, rotation = seen_from(yaw, pitch, head_yaw=head_yaw, head_roll=head_roll)
+    pose = pose_from_landmarks(lm, 512, 512)
+    np.testing.assert_allclose(pose.angles, euler_of(rotation), atol=0.01)
+    assert np.linalg.norm(pose.translation_mm) * MM == pytest.approx(RADIUS_MEAN, rel=1e-4)
+    # the camera of another FOV: the estimate needs that camera's focal
+    lm, _ = seen_from(yaw, pitch, fov=14.0, head_yaw=head_yaw, head_roll=head_roll)
+    pose = pose_from_landmarks(lm, 512, 512, focal=float(fov_to_focal(14.0)))
+    assert np.linalg.norm(pose.translation_mm) * MM == pytest.approx(RADIUS_MEAN, rel=1e-4)
 
 
 def test_pose_signs():
-    lm = project(20, 0, 0)
-    assert lm[30, 0] > (lm[36, 0] + lm[45, 0]) / 2  # yaw > 0: the nose points to the image right
-    assert project(0, 20, 0)[30, 1] < project(0, 0, 0)[30, 1]  # pitch > 0: looks up
-    lm = project(0, 0, 20)
-    assert lm[45, 1] > lm[36, 1]  # roll > 0: clockwise in the image
+    lm, _ = seen_from(0, 0, head_yaw=20)  # the face turns toward world +x, the frontal camera's image right
+    assert lm[30, 0] > (lm[36, 0] + lm[45, 0]) / 2 and pose_from_landmarks(lm, 512, 512).yaw > 19
+    assert pose_from_landmarks(seen_from(-20, 0)[0], 512, 512).yaw > 19  # as a camera moving to -x sees it
+    above, level = seen_from(0, 20)[0], seen_from(0, 0)[0]  # a camera above sees the face look down
+    assert above[30, 1] - above[27, 1] > level[30, 1] - level[27, 1]
+    assert pose_from_landmarks(above, 512, 512).pitch < -19
+    lm, _ = seen_from(0, 0, head_roll=-20)
+    assert lm[45, 1] > lm[36, 1] and pose_from_landmarks(lm, 512, 512).roll > 19  # clockwise in the image
+
+
+@needs_dlib
+@pytest.mark.slow
+def test_head_pose_of_procedural_renders_at_known_camera_angles():
+    """Renders of procedural heads by the datasets' cameras at known yaw and pitch. The generic face is
+    not the procedural one, so the frontal view's estimate is subtracted; dlib's landmarks on these
+    stylised faces saturate beyond ~25 deg, so the views stay within +-20 deg."""
+    from datagen.cameras import ViewSet
+    from datagen.generators import make_generator
+    generator = make_generator("procedural")
+    yaw, pitch = np.array([0.0, -20, 20, 0, 0]), np.array([0.0, 0, 0, -12, 12])
+    views = ViewSet("test", yaw, pitch, np.full(5, RADIUS_MEAN), np.full(5, FOV_MEAN), (0.0, 0.0, 0.0))
+    errors, pitch_signs = [], []
+    for index in range(3):
+        rendered = generator.render(generator.sample_subject(3, index), views, 224)
+        poses = []
+        for rgb in rendered.rgb:
+            try:
+                poses.append(head_pose(to_uint8(rgb)))
+            except FaceError:
+                poses.append(None)
+        if poses[0] is None:
+            continue
+        for i in (1, 2):  # the camera's yaw turns the face the other way
+            if poses[i] is not None:
+                errors.append(abs((poses[i].yaw - poses[0].yaw) + yaw[i]))
+        for i in (3, 4):
+            if poses[i] is not None:
+                pitch_signs.append(np.sign(poses[i].pitch - poses[0].pitch) == -np.sign(pitch[i]))
+    assert len(errors) >= 3 and np.median(errors) < 4.0, errors
+    assert len(pitch_signs) >= 2 and all(pitch_signs)
 
 
 @needs_dlib
 def test_head_pose_and_apd(photo):
-    yaw, pitch, roll = head_pose(photo)
+    yaw, pitch, roll = head_pose(photo).angles
     assert abs(yaw) < 10 and abs(roll) < 10 and abs(pitch) < 25
-    yaw_f, pitch_f, roll_f = head_pose(photo[:, ::-1])
+    yaw_f, pitch_f, roll_f = head_pose(photo[:, ::-1]).angles
     assert abs(yaw + yaw_f) < 3 and abs(roll + roll_f) < 3 and abs(pitch - pitch_f) < 3
     assert apd(photo, photo) == 0
     assert 0 < apd(photo, photo[:, ::-1]) < 5
@@ -218,3 +282,75 @@ def test_csim_between_subjects_averages_pairs_of_found_faces(photo):
     assert n == 2 and abs(sim - csim(photo, soft)) < 1e-6 and sim < 1
     sim, n = faces.csim_between_subjects([photo, data.chelsea()])
     assert n == 1 and math.isnan(sim)
+
+
+# -- photo size limits and formats ----------------------------------------------------------------------------
+def _png_header(width: int, height: int) -> bytes:
+    """The start of a PNG that claims width x height px (its pixel data is missing)."""
+    import struct
+    import zlib
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    chunk = lambda kind, data: (struct.pack(">I", len(data)) + kind + data +  # noqa: E731
+                                struct.pack(">I", zlib.crc32(kind + data)))
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", b"\0" * 64)
+
+
+def test_a_photo_above_the_pixel_limit_is_refused_from_its_header(tmp_path):
+    import time
+    (tmp_path / "huge.png").write_bytes(_png_header(12000, 12000))
+    t0 = time.perf_counter()
+    for src in (tmp_path / "huge.png", _png_header(12000, 12000)):
+        with pytest.raises(FaceError, match="12000x12000 px is 144 megapixels, above the limit of 100"):
+            faces.read_photo(src)
+    assert time.perf_counter() - t0 < 1  # nothing was decoded
+    with pytest.raises(FaceError, match="cannot read image"):  # within the limit: decoding finds the data missing
+        faces.read_photo(_png_header(4000, 3000))
+
+
+def test_a_large_photo_is_downscaled_as_it_is_decoded(photo, tmp_path):
+    import tracemalloc
+    big = Image.fromarray(photo).resize((6000, 4500), Image.BILINEAR)
+    big.save(tmp_path / "big.jpg", quality=90)
+    big.save(tmp_path / "big.png", compress_level=1)
+    del big
+    tracemalloc.start()
+    jpeg = faces.read_photo(tmp_path / "big.jpg")
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    # the JPEG decoder itself works at half size (3000 px, under the 4096 px working limit), so no
+    # full-size array ever exists: a float copy of the whole photo would take 324 MB
+    assert jpeg.rgb.shape == (2250, 3000, 3) and jpeg.size == (6000, 4500) and jpeg.scale == 0.5
+    assert peak < 0.5 * 6000 * 4500 * 3 * 4
+    png = faces.read_photo(tmp_path / "big.png")  # decoded whole (8 bits), then area-averaged
+    assert png.rgb.shape[:2] == (3072, 4096) and png.scale == pytest.approx(4096 / 6000)
+    small = np.asarray(Image.fromarray(to_uint8(png.rgb)).resize((512, 512), Image.BOX)).astype(float)
+    assert np.abs(small - photo).mean() < 4  # the same picture
+
+
+def test_formats_pillow_lacks_are_read_by_openimageio(photo, tmp_path):
+    oiio = pytest.importorskip("OpenImageIO")
+    srgb = photo.astype(np.float32) / 255
+    linear = np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4).astype(np.float32)
+    out = oiio.ImageOutput.create(str(tmp_path / "photo.exr"))
+    out.open(str(tmp_path / "photo.exr"), oiio.ImageSpec(512, 512, 3, "half"))
+    out.write_image(linear)
+    out.close()
+    with pytest.raises(UnidentifiedImageError):
+        Image.open(tmp_path / "photo.exr")
+    back = faces.read_photo(tmp_path / "photo.exr")
+    assert back.rgb.shape == (512, 512, 3) and np.abs(back.rgb - srgb).max() < 2 / 255  # sRGB again
+    with pytest.raises(FaceError, match="not an image format Pillow can decode"):  # bytes: Pillow only
+        faces.read_photo((tmp_path / "photo.exr").read_bytes())
+    (tmp_path / "junk.exr").write_bytes(b"not an image at all")
+    with pytest.raises(FaceError, match="not an image format Pillow or OpenImageIO can decode"):
+        faces.read_photo(tmp_path / "junk.exr")
+    wide = np.tile(np.linspace(0, 1, 9000, dtype=np.float32), (6, 1))[..., None]  # 9000 px: read in strips, 1/3
+    out = oiio.ImageOutput.create(str(tmp_path / "wide.exr"))
+    out.open(str(tmp_path / "wide.exr"), oiio.ImageSpec(9000, 6, 1, "float"))
+    out.write_image(wide)
+    out.close()
+    back = faces.read_photo(tmp_path / "wide.exr")
+    assert back.rgb.shape == (2, 3000, 3) and back.size == (9000, 6)
+    expected = wide[:3, :, 0].reshape(3, 3000, 3).mean(axis=(0, 2))
+    expected = np.where(expected <= 0.0031308, 12.92 * expected, 1.055 * expected ** (1 / 2.4) - 0.055)
+    np.testing.assert_allclose(back.rgb[0, :, 0], expected, atol=1e-5)

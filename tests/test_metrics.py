@@ -29,6 +29,10 @@ def test_psnr_values_cap_and_mask():
     assert torch.isnan(empty).all()
     with pytest.raises(ValueError, match="B, C, H, W"):
         psnr(x[0], y[0])
+    skm = pytest.importorskip("skimage.metrics", reason="scikit-image is the reference PSNR")
+    noisy = (x + 0.05 * torch.randn(x.shape, generator=torch.Generator().manual_seed(3), dtype=x.dtype)).clamp(0, 1)
+    expected = [skm.peak_signal_noise_ratio(a.numpy(), b.numpy(), data_range=1) for a, b in zip(x, noisy)]
+    torch.testing.assert_close(psnr(noisy, x), torch.tensor(expected, dtype=x.dtype), rtol=1e-6, atol=0)
 
 
 def test_ssim_matches_skimage_gaussian():

@@ -172,7 +172,7 @@ def test_config_round_trip_and_errors():
         preset("huge")
     with pytest.raises(ValueError, match="unknown ablation"):
         preset("tiny+fast")
-    with pytest.raises(ValueError, match="unknown model settings"):
+    with pytest.raises(ValueError, match="unknown settings"):
         ModelConfig.from_dict({**cfg.to_dict(), "bogus": 1})
 
 

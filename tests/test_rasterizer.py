@@ -8,7 +8,8 @@ import torch
 
 from datagen.cameras import camera_position, intrinsics, look_at, pixel_intrinsics
 from panolam.gaussians import PLY_PROPERTIES, Gaussians, load_ply, save_ply
-from panolam.rasterizer import ALPHA_MIN, EPS2D, project, rasterize, rasterize_reference
+from panolam.rasterizer import ALPHA_MIN, EPS2D, project, rasterize
+from panolam.rasterizer_reference import rasterize_reference
 
 W, H = 32, 24
 OUTPUTS = ("rgb", "alpha", "depth")
@@ -250,6 +251,75 @@ def test_projection_culls_and_stays_finite():
 
 
 # --------------------------------------------------------------------------------------------
+# Numerical stability: needles, non-finite parameters
+
+
+def needle(length_px, width_px, angle_deg, f=100.0, z=2.0, dtype=torch.float64):
+    """One Gaussian on the optical axis whose projected axes are length_px and width_px standard
+    deviations, the long one at angle_deg in the image; the third axis is 0 (a flat ellipse)."""
+    half = math.radians(angle_deg) / 2
+    quats = torch.tensor([[math.cos(half), 0.0, 0.0, math.sin(half)]], dtype=dtype)
+    scales = torch.tensor([[length_px * z / f, width_px * z / f, 0.0]], dtype=dtype)
+    return torch.tensor([[0.0, 0.0, z]], dtype=dtype), quats, scales
+
+
+@pytest.mark.parametrize("length", [1e4, 1e6, 1e8, 1e10, 1e12])
+def test_covariance_determinant_has_no_cancellation(length):
+    """a c - b^2 of a 45 deg needle loses every digit beyond ~1e7 px (and culls it beyond ~1e9)."""
+    means, quats, scales = needle(length, 1.5, 45.0)
+    K = torch.tensor([[100.0, 0, 32], [0, 100.0, 32], [0, 0, 1]], dtype=torch.float64)
+    proj = project(means, quats, scales, torch.tensor([0.8], dtype=torch.float64), torch.eye(4, dtype=torch.float64),
+                   K, 64, 64)
+    exact = (length * 1.5) ** 2 + EPS2D * (length ** 2 + 1.5 ** 2) + EPS2D ** 2
+    assert proj.valid.item() and float(proj.det2d[0]) == pytest.approx(exact, rel=1e-12)
+
+
+@pytest.mark.parametrize("length, angle, dtype, atol", [(1e6, 30.0, torch.float64, 1e-9), (1e8, 45.0, torch.float64, 1e-9),
+                                                        (1e6, 120.0, torch.float32, 1e-4)])
+def test_needle_renders_its_analytic_footprint(length, angle, dtype, atol):
+    width, o, size = 1.5, 0.8, 64
+    means, quats, scales = needle(length, width, angle, dtype=dtype)
+    K = torch.tensor([[100.0, 0, size / 2], [0, 100.0, size / 2], [0, 0, 1]], dtype=dtype)
+    _, alpha, _ = rasterize(means, quats, scales, torch.tensor([o], dtype=dtype), torch.ones(1, 3, dtype=dtype),
+                            torch.eye(4, dtype=dtype), K, size, size)
+    c = torch.arange(size, dtype=torch.float64) + 0.5 - size / 2
+    dx, dy = c[None, :], c[:, None]
+    t = math.radians(angle)
+    along, across = dx * math.cos(t) + dy * math.sin(t), -dx * math.sin(t) + dy * math.cos(t)
+    expected = o * torch.exp(-0.5 * (along ** 2 / (length ** 2 + EPS2D) + across ** 2 / (width ** 2 + EPS2D)))
+    expected = torch.where(expected >= ALPHA_MIN, expected, 0.0)
+    assert expected.max() > 0.79 and (expected == 0).float().mean() > 0.5  # a thin line across the image
+    torch.testing.assert_close(alpha[..., 0].double(), expected, rtol=0, atol=atol)
+
+
+def test_non_finite_gaussians_are_culled_with_zero_gradients():
+    """NaN in a mean, a quaternion, an opacity or a colour, an infinite scale: those Gaussians vanish
+    and the image and every gradient are those of the others (no NaN through a masked branch)."""
+    view, K = camera()
+    scene = random_scene(40, 60)
+    broken = {k: v.clone() for k, v in scene.items()}
+    broken["means"][3, 1] = math.nan
+    broken["quats"][7, 0] = math.nan
+    broken["scales"][11, 2] = math.inf
+    broken["opacities"][13] = math.nan
+    broken["colors"][17, 2] = math.nan
+    bad = [3, 7, 11, 13, 17]
+    good = [i for i in range(40) if i not in bad]
+    weights = loss_weights(render(rasterize, scene, view, K, tile_size=8))
+    leaves = requiring_grad(broken)
+    outputs = render(rasterize, leaves, view, K, tile_size=8)
+    sum((o * w).sum() for o, w in zip(outputs, weights)).backward()
+    only_good = {k: (v[good] if k != "background" else v) for k, v in scene.items()}
+    for a, b in zip(outputs, render(rasterize, only_good, view, K, tile_size=8)):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
+    for name in INPUTS:
+        grad = leaves[name].grad
+        assert torch.isfinite(grad).all(), name
+        if name != "background":
+            assert grad[bad].abs().max() == 0 and grad[good].abs().max() > 0, name
+
+
+# --------------------------------------------------------------------------------------------
 # PLY export
 
 
@@ -303,8 +373,74 @@ def test_ply_loader_ignores_extra_properties(tmp_path):
         assert torch.equal(getattr(a, name), getattr(b, name)), name
 
 
+@pytest.mark.parametrize("text, byte_order", [(True, "="), (False, ">")])
+def test_ply_loader_reads_other_encodings_and_elements(tmp_path, text, byte_order):
+    """ASCII and big-endian files, a double-precision position and a face element with a list property."""
+    from plyfile import PlyData, PlyElement
+    g = Gaussians(**{k: v.float() for k, v in random_scene(6, 42).items() if k != "background"})
+    ours = save_ply(tmp_path / "ours.ply", g)
+    table = np.frombuffer(ours.read_bytes().split(b"end_header\n", 1)[1], dtype="<f4").reshape(6, 17)
+    vertex = np.empty(6, dtype=[(p, "f8" if p in "xyz" else "f4") for p in PLY_PROPERTIES])
+    for i, p in enumerate(PLY_PROPERTIES):
+        vertex[p] = table[:, i]
+    face = np.array([([0, 1, 2],), ([3, 4, 5],)], dtype=[("vertex_indices", "i4", (3,))])
+    PlyData([PlyElement.describe(vertex, "vertex"), PlyElement.describe(face, "face")], text=text,
+            byte_order=byte_order).write(str(tmp_path / "other.ply"))
+    a, b = load_ply(ours), load_ply(tmp_path / "other.ply")
+    for name in ("means", "quats", "scales", "opacities", "colors"):
+        torch.testing.assert_close(getattr(a, name), getattr(b, name), rtol=0, atol=1e-6, msg=name)
+    (tmp_path / "bad.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 5\n")
+    with pytest.raises(ValueError, match="not a readable PLY file"):
+        load_ply(tmp_path / "bad.ply")
+
+
 # --------------------------------------------------------------------------------------------
-# gsplat on CUDA
+# gsplat
+
+
+class FakeGsplat:
+    """Stands in for the ``gsplat`` module where CUDA is missing: ``rasterization`` as gsplat defines it
+    (all cameras at once, ``backgrounds`` composited inside, "RGB+ED" appends the expected depth),
+    computed by the pure-PyTorch rasterizer; it records each call's arguments."""
+
+    def __init__(self):
+        self.calls = []
+
+    def rasterization(self, means, quats, scales, opacities, colors, viewmats, Ks, width, height, backgrounds=None,
+                      render_mode="RGB", **options):
+        self.calls.append(dict(cameras=viewmats.shape, backgrounds=None if backgrounds is None else backgrounds.shape,
+                               render_mode=render_mode, **options))
+        rgb, alpha, depth = rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
+                                      backend="torch")
+        if backgrounds is not None:
+            rgb = rgb + (1 - alpha) * backgrounds[:, None, None, :]
+        return torch.cat([rgb, depth], -1), alpha, {}
+
+
+def test_gsplat_backend_renders_all_cameras_in_one_call_with_its_backgrounds(monkeypatch):
+    import sys
+    fake = FakeGsplat()
+    monkeypatch.setitem(sys.modules, "gsplat", fake)
+    views, Ks = zip(camera(yaw=0.0), camera(yaw=70.0, focal=1.5), camera(yaw=-40.0))
+    scene = random_scene(60, 7)
+    scene["background"] = torch.rand(3, 3, dtype=torch.float64)
+    ours = render(rasterize, scene, torch.stack(views), torch.stack(Ks), backend="torch")
+    theirs = render(rasterize, scene, torch.stack(views), torch.stack(Ks), backend="gsplat")
+    assert len(fake.calls) == 1 and fake.calls[0]["cameras"] == (3, 4, 4) and fake.calls[0]["backgrounds"] == (3, 3)
+    assert fake.calls[0]["render_mode"] == "RGB+ED" and fake.calls[0]["eps2d"] == EPS2D
+    for a, b in zip(ours, theirs):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
+    one = render(rasterize, scene | {"background": scene["background"][1]}, views[1], Ks[1], backend="gsplat")
+    assert [t.shape for t in one] == [(H, W, 3), (H, W, 1), (H, W, 1)]
+    torch.testing.assert_close(one[0], ours[0][1], rtol=0, atol=1e-12)
+    from panolam.gaussians import Gaussians
+    from panolam.rasterizer import render_views
+    fake.calls.clear()
+    g = Gaussians(*(torch.stack([scene[k]] * 2).float() for k in ("means", "quats", "scales", "opacities", "colors")))
+    c2w = torch.from_numpy(look_at(camera_position(np.array([0.0, 90.0, 180.0, 270.0]), np.zeros(4), np.full(4, 2.5)))).float()
+    rgb, _, _ = render_views(g, c2w.expand(2, 4, 4, 4), torch.from_numpy(intrinsics(1.2)).float().expand(2, 4, 3, 3),
+                             16, background=torch.ones(3), backend="gsplat")
+    assert rgb.shape == (2, 4, 16, 16, 3) and [c["cameras"] for c in fake.calls] == [(4, 4, 4)] * 2
 
 
 def test_matches_gsplat_on_cuda():

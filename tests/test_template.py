@@ -141,6 +141,23 @@ def test_area_threshold_mode_equals_the_literal_split(threshold_scale, passes):
         assert finals.max() > threshold  # capped by max_passes
 
 
+@pytest.mark.parametrize("n, passes", [(1280, 1), (1280, 2), (642, 3)])
+def test_splitting_every_face_is_trimesh_subdivision(n, passes):
+    """Below every face's area the split is plain midpoint subdivision: trimesh's, point for point."""
+    import trimesh
+    from scipy.spatial import cKDTree
+    t = T.embedded_template(n) if n in T.SHIPPED_VERTICES else T.Template(*T.generate_template(n), "test", 1.0)
+    threshold = face_areas(t.vertices, t.faces).min() / 4 ** passes / 2
+    d = T.densification(t, area_threshold=threshold, max_passes=passes)
+    ours = T.densify(torch.from_numpy(t.vertices.astype(np.float64))[None], d)[0].numpy()
+    v, f = t.vertices.astype(np.float64), t.faces
+    for _ in range(passes):
+        v, f = trimesh.remesh.subdivide(v, f)
+    assert len(ours) == len(v) and d.passes == passes
+    distance, _ = cKDTree(v).query(ours)
+    assert distance.max() < 1e-6  # float32 weights
+
+
 def check_points(t, d):
     V = len(t.vertices)
     assert d.indices.dtype == np.int64 and d.weights.dtype == np.float32

@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import dataclasses
+import errno
+import io
 import json
 import math
 import subprocess
@@ -12,19 +14,21 @@ import numpy as np
 import pytest
 import torch
 
+from datagen.errors import DatasetError
 from datagen.manifests import read_manifest
 from labeling_tool.manifest import compile_manifest, write_manifest
 from panolam import train as train_module
-from panolam.config import preset
 from panolam.data import TrainingSamples, collate
-from panolam.train import TrainConfig, TrainingError, load_model, read_checkpoint, save_checkpoint, train
+from panolam.checkpoints import load_model, read_checkpoint, save_checkpoint
+from panolam.config import TrainConfig, preset
+from panolam.train import TrainingError, train
 from datagen.pipeline import run_sample
 from tests.conftest import tiny_spec
 from tests.test_model import SMALL
 
 MODEL = preset("tiny", **SMALL)
 FAST = TrainConfig(steps=4, batch_size=1, views_per_sample=3, render_resolution=16, warmup_steps=2,
-                   checkpoint_every=2, log_every=1, image_every=2)
+                   checkpoint_every=2, log_every=3, image_every=2)
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +78,8 @@ def test_train_writes_checkpoint_logs_and_resumes_exactly(curated, tmp_path):
     straight = train(data, manifest, MODEL, FAST, tmp_path / "a", progress=False)
     assert np.isfinite(straight["loss"]) and straight["step"] == 4
     assert (tmp_path / "a" / "checkpoint.pt").exists() and any((tmp_path / "a" / "tb").iterdir())
-    assert "D-SSIM" in (tmp_path / "a" / "train.log").read_text()
+    log = (tmp_path / "a" / "train.log").read_text()
+    assert "D-SSIM" in log and all(f"step {i}: loss" in log for i in (1, 2, 3, 4))  # every step, not every 3rd
     half = dataclasses.replace(FAST, steps=2)
     train(data, manifest, MODEL, half, tmp_path / "b", progress=False)
     resumed = train(data, manifest, MODEL, FAST, tmp_path / "b", resume=True, progress=False)
@@ -166,9 +171,9 @@ def _ddp_worker(rank, port, data, manifest, out, q):
 
 def test_two_processes_match_one_process_with_the_same_global_batch(curated, tmp_path):
     import torch.multiprocessing as mp
-    from panolam.cli import _free_port
+    from panolam.launch import free_port
     data, manifest = curated
-    mp.spawn(_ddp_worker, args=(_free_port(), data, manifest, tmp_path / "ddp", None), nprocs=2)
+    mp.spawn(_ddp_worker, args=(free_port(), data, manifest, tmp_path / "ddp", None), nprocs=2)
     single = dataclasses.replace(FAST, steps=2, batch_size=2)
     train(data, manifest, MODEL, single, tmp_path / "one", progress=False)
     a, b = read_checkpoint(tmp_path / "ddp")["model"], read_checkpoint(tmp_path / "one")["model"]
@@ -181,7 +186,7 @@ def test_eval_and_cli_end_to_end(curated, tmp_path):
     run = tmp_path / "run"
     one = dataclasses.replace(FAST, steps=1)
     train(data, manifest, MODEL, one, run, progress=False)
-    r = subprocess.run([sys.executable, "-m", "panolam.cli", "eval", "--data", str(data), "--manifest", str(manifest),
+    r = subprocess.run([sys.executable, "-m", "panolam", "eval", "--data", str(data), "--manifest", str(manifest),
                         "--ckpt", str(run), "--no-faces"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     report = (run / "eval-test" / "eval.md").read_text()
@@ -194,24 +199,28 @@ def test_eval_and_cli_end_to_end(curated, tmp_path):
 def test_eval_asks_the_face_tools_for_csim_on_front_views_and_apd_on_all(curated):
     """The face metrics' plumbing, with recording stand-ins for :mod:`panolam.faces` (dlib is tested there)."""
     from types import SimpleNamespace
+    from panolam.data import accepted_subjects, load_views
     from panolam.evaluate import evaluate
     from panolam.model import PanoLAM
     data, manifest = curated
     calls = {"csim": [], "apd": [], "between": []}
     tools = SimpleNamespace(
         csim=lambda a, b, box_from_b: calls["csim"].append((a.shape, b.shape, box_from_b)) or 0.5,
-        apd=lambda a, b: calls["apd"].append(a.shape) or 2.0,
+        apd=lambda a, b, focal: calls["apd"].append((a.shape, round(focal, 3))) or 2.0,
         csim_between_subjects=lambda images: calls["between"].append(len(images)) or (0.25, len(images)))
     torch.manual_seed(0)
     r = evaluate(PanoLAM(MODEL).eval(), data, read_manifest(manifest), "test", resolution=24, faces=tools)
-    assert calls["csim"] == [((24, 24, 3), (24, 24, 3), True)] and len(calls["apd"]) == 4 and calls["between"] == [1]
+    assert calls["csim"] == [((24, 24, 3), (24, 24, 3), True)] and calls["between"] == [1]
+    key, shard = accepted_subjects(read_manifest(manifest), "test", data)[0]
+    focals = [round(float(K[0, 0]), 3) for K in load_views(data, key, shard).K]
+    assert len(calls["apd"]) == 4 and all(shape == (24, 24, 3) and f in focals for shape, f in calls["apd"])
     assert r["per_view"]["front"]["csim"] == 0.5 and math.isnan(r["per_view"]["back"]["csim"])
     assert r["per_view"]["all"]["apd"] == 2.0 and r["per_view"]["all"]["counted"]["apd"] == 4
     assert (r["csim_between_subjects"], r["csim_between_subjects_faces"]) == (0.25, 1)
 
 
 def _cli(*argv, cwd=None):
-    return subprocess.run([sys.executable, "-m", "panolam.cli", *map(str, argv)], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "panolam", *map(str, argv)], capture_output=True, text=True,
                           cwd=cwd)
 
 
@@ -266,17 +275,17 @@ def test_nproc_mistakes_are_one_line_before_any_process_starts(curated, tmp_path
 
 @pytest.mark.parametrize("argv, message", [
     (["train", "--data", "D", "--manifest", "M", "--out", "O", "--config", "huge"], "unknown config"),
-    (["eval", "--data", "D", "--manifest", "M", "--ckpt", "/nonexistent/run"], "no such manifest"),
+    (["eval", "--data", "D", "--manifest", "M", "--ckpt", "/nonexistent/run"], "M: no "),  # the manifest, named
     (["infer", "x.png", "--ckpt", "/nonexistent/run", "--out", "h.ply"], "no checkpoint"),
 ])
 def test_cli_errors_are_one_line(argv, message, tmp_path):
-    r = subprocess.run([sys.executable, "-m", "panolam.cli", *argv], capture_output=True, text=True, cwd=tmp_path)
+    r = subprocess.run([sys.executable, "-m", "panolam", *argv], capture_output=True, text=True, cwd=tmp_path)
     assert r.returncode == 2 and message in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
 
 
 def test_manifest_of_another_dataset_is_refused_before_anything_is_written(curated, tmp_path, tiny_dataset):
     data, manifest = curated
-    r = subprocess.run([sys.executable, "-m", "panolam.cli", "train", "--data", str(tiny_dataset), "--manifest",
+    r = subprocess.run([sys.executable, "-m", "panolam", "train", "--data", str(tiny_dataset), "--manifest",
                         str(manifest), "--out", str(tmp_path / "run"), "--steps", "1"], capture_output=True, text=True)
     assert r.returncode == 2 and "compiled for another dataset" in r.stderr, r.stderr
     assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "run").exists()
@@ -306,7 +315,7 @@ def untrained_run(tmp_path_factory):
 
 
 def _infer(*argv, cwd):
-    return subprocess.run([sys.executable, "-m", "panolam.cli", "infer", *map(str, argv)], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "panolam", "infer", *map(str, argv)], capture_output=True,
                           text=True, cwd=cwd)
 
 
@@ -375,3 +384,96 @@ def test_infer_prunes_faint_gaussians_and_reports_what_it_costs(untrained_run, t
     r = _infer(*common, "--out", "none.ply", "--prune-opacity", f"{above_all:.6f}", cwd=tmp_path)
     assert r.returncode == 2 and "removes every Gaussian" in r.stderr and not (tmp_path / "none.ply").exists()
     assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+def test_a_learning_rate_too_large_for_float32_stops_before_anything_is_saved(curated, tmp_path):
+    data, manifest = curated
+    huge = dataclasses.replace(FAST, lr=1e38, warmup_steps=0)
+    with pytest.raises(TrainingError, match=r"non-finite update at step 0 \(learning rate 1e\+38\)"):
+        train(data, manifest, MODEL, huge, tmp_path / "lr", progress=False)
+    assert not (tmp_path / "lr" / "checkpoint.pt").exists()
+
+
+class _FullDisk(io.FileIO):
+    """A file on a full disk: every write fails as the kernel's would."""
+
+    def write(self, data):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+
+def test_a_full_disk_while_writing_the_checkpoint_is_one_line_and_leaves_no_temporary(curated, tmp_path,
+                                                                                     monkeypatch, capsys):
+    import builtins
+    import datagen.files as files
+    from panolam.cli import main
+    data, manifest = curated
+
+    def opener(path, mode="r", *args, **kwargs):
+        if "checkpoint.pt" in str(path) and "w" in mode:
+            return _FullDisk(path, "wb")
+        return builtins.open(path, mode, *args, **kwargs)
+    monkeypatch.setattr(files, "open", opener, raising=False)
+    run = tmp_path / "run"
+    code = main(["train", "--data", str(data), "--manifest", str(manifest), "--out", str(run), "--steps", "1",
+                 "--views-per-sample", "3", "--render-resolution", "16", "--batch-size", "1", "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.strip() == f"panolam train: error: disk full ({run / 'checkpoint.pt'})", err
+    assert sorted(p.name for p in run.iterdir()) == ["tb", "train.log"]  # no checkpoint, no .checkpoint.pt.tmp
+
+
+@pytest.fixture
+def damaged(curated, tmp_path):
+    """A copy of the curated dataset; returns it, the manifest, and a training subject's shard and key."""
+    import shutil
+    from datagen.shards import tar_path
+    data, manifest = curated
+    copy = tmp_path / "copy"
+    shutil.copytree(data, copy)
+    key, shard = TrainingSamples(copy, manifest, "train", 3, 16, 0).subjects[0]
+    return copy, manifest, tar_path(copy, shard), key
+
+
+def test_training_checks_its_shards_first_and_remembers_those_that_passed(damaged, monkeypatch):
+    import datagen.verify as verify
+    data, manifest, tar, _ = damaged
+    (data / verify.SHARD_CHECKS).unlink(missing_ok=True)  # as remembered by the copied dataset
+    hashed = []
+    real = verify.sha256_file
+    monkeypatch.setattr(verify, "sha256_file", lambda p: hashed.append(p) or real(p))
+    TrainingSamples(data, manifest, "train", 3, 16, 0)
+    assert tar in hashed and (data / verify.SHARD_CHECKS).exists()
+    hashed.clear()
+    TrainingSamples(data, manifest, "train", 3, 16, 0)
+    assert hashed == []  # the second time costs a stat per shard
+    blob = bytearray(tar.read_bytes())
+    blob[700] ^= 0xFF  # one flipped bit pattern, same size: only the hash can tell
+    tar.write_bytes(bytes(blob))
+    with pytest.raises(DatasetError, match=f"{tar}: sha256 differs from the sidecar"):
+        TrainingSamples(data, manifest, "train", 3, 16, 0)
+    tar.unlink()
+    with pytest.raises(DatasetError, match=f"{tar}: missing although its sidecar exists"):
+        TrainingSamples(data, manifest, "train", 3, 16, 0)
+
+
+def test_a_view_that_does_not_decode_names_the_shard_and_the_subject(damaged):
+    """A shard whose sidecar vouches for a broken image (written broken): decoding says where."""
+    import tarfile
+    from datagen.files import sha256_file
+    from datagen.shards import read_sidecar, sidecar_path
+    data, manifest, tar, key = damaged
+    with tarfile.open(tar) as t:
+        members = [(m, t.extractfile(m).read()) for m in t]
+    with tarfile.open(tar, "w", format=tarfile.USTAR_FORMAT) as t:
+        for m, blob in members:
+            if m.name.startswith(key) and m.name.endswith(".png"):
+                blob = blob[:20] + bytes(len(blob) - 20)  # the header survives, the pixels do not
+            t.addfile(m, io.BytesIO(blob))
+    shard = int(tar.stem.split("-")[1])
+    side = read_sidecar(data, shard)
+    side.update(tar_bytes=tar.stat().st_size, tar_sha256=sha256_file(tar))
+    sidecar_path(data, shard).write_text(json.dumps(side))
+    samples = TrainingSamples(data, manifest, "train", 3, 16, 0)
+    g = next(g for g in range(8) if samples.pick(g)[0] == key)
+    with pytest.raises(DatasetError, match=f"{tar}: subject {key} does not decode") as e:
+        samples[g]
+    assert "\n" not in str(e.value)

@@ -1,0 +1,108 @@
+"""Where training runs: this process, ``--nproc N`` processes on this machine, or one of the
+processes ``torchrun`` started (``torchrun --nproc-per-node N -m panolam train ...``, which sets
+``WORLD_SIZE``, ``RANK`` and ``LOCAL_RANK``).
+
+Processes average gradients with torch.distributed: gloo on CPU (each process gets its share of
+the cores), NCCL on CUDA (process i on GPU i). A user mistake in any process is one line and exit
+status 2, as in a single process.
+"""
+from __future__ import annotations
+
+import os
+import socket
+import sys
+from dataclasses import dataclass
+from typing import Optional
+
+from datagen.errors import UserError, os_error_line
+
+from .config import ModelConfig, TrainConfig
+
+
+@dataclass(frozen=True)
+class Job:
+    """What ``panolam train`` was asked to do (see :func:`panolam.train.train` for each field)."""
+
+    data: str
+    manifest: str
+    out: str
+    resume: bool
+    device: str
+    model: ModelConfig
+    training: TrainConfig
+    progress: bool = True
+    started: Optional[float] = None  # time.monotonic() the time limit counts from
+
+    def run(self, device: str) -> dict:
+        from .train import train
+        return train(self.data, self.manifest, self.model, self.training, self.out, resume=self.resume,
+                     device=device, progress=self.progress, started=self.started)
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that is free now (for the process group's rendezvous)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def launched_by_torchrun() -> bool:
+    return int(os.environ.get("WORLD_SIZE", "1")) > 1
+
+
+def run(job: Job, nproc: int = 1) -> Optional[dict]:
+    """Train ``job`` here, in ``nproc`` new processes, or as this torchrun process; returns the last
+    log entry (None when the work ran in child processes, and on torchrun ranks other than 0)."""
+    if launched_by_torchrun():
+        return _as_torchrun_process(job)
+    if nproc == 1:
+        return job.run(job.device)
+    import torch.multiprocessing as mp
+    from .train import check_start
+    # Each process checks again as it starts; checking here first makes a mistake one line, not one per process.
+    check_start(job.data, job.manifest, job.model, job.training, job.out, job.resume)
+    try:
+        mp.spawn(_child, args=(nproc, free_port(), job), nprocs=nproc)
+    except mp.ProcessExitedException as e:
+        if e.exit_code == 2:  # the process has said why
+            raise SystemExit(2) from None
+        raise
+    return None
+
+
+def _as_torchrun_process(job: Job) -> Optional[dict]:
+    """This process's share of a torchrun job; the log entry on rank 0 only (one report per run)."""
+    import torch
+    import torch.distributed as dist
+    device = job.device
+    if device.startswith("cuda"):
+        device = f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}"
+        torch.cuda.set_device(device)
+    dist.init_process_group("nccl" if device.startswith("cuda") else "gloo")
+    try:
+        entry = job.run(device)
+        return entry if dist.get_rank() == 0 else None
+    finally:
+        dist.destroy_process_group()
+
+
+def _child(rank: int, world: int, port: int, job: Job) -> None:
+    """One of ``nproc`` processes started by :func:`run`."""
+    import torch
+    import torch.distributed as dist
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE=str(world))
+    torch.set_num_threads(max(1, (os.cpu_count() or 1) // world))
+    cuda = job.device.startswith("cuda")
+    if cuda:
+        torch.cuda.set_device(rank)
+    dist.init_process_group("nccl" if cuda else "gloo", rank=rank, world_size=world)
+    try:
+        job.run(f"cuda:{rank}" if cuda else "cpu")
+    except (UserError, OSError) as e:
+        line = str(e) if isinstance(e, UserError) else os_error_line(e)
+        if line is None:
+            raise
+        print(f"panolam train: error (process {rank}): {line}", file=sys.stderr)
+        sys.exit(2)
+    finally:
+        dist.destroy_process_group()
