@@ -64,6 +64,9 @@ def build_parser() -> OneLineParser:
     c.add_argument("--test-count", type=int, default=None,
                    help="held-out test subjects (default: min(100, accepted/10); the paper holds out 100)")
     c.add_argument("--parent", help="the manifest this version revises")
+    c.add_argument("--skip-incomplete", action="store_true",
+                   help="reject the subjects of shards that fail the sidecar/size/sha256 check (default: an error "
+                        "naming them)")
 
     s = sub.add_parser("stats", help="counts per reason and reviewer, agreement between reviewers")
     s.add_argument("dataset")
@@ -161,7 +164,8 @@ def _review(args) -> int:
 def _compile(args) -> int:
     from .manifest import compile_manifest, next_version_path, write_manifest
 
-    manifest = compile_manifest(args.dataset, args.labels, args.policy, args.unreviewed, args.test_count, args.parent)
+    manifest = compile_manifest(args.dataset, args.labels, args.policy, args.unreviewed, args.test_count, args.parent,
+                                skip_unverified=args.skip_incomplete)
     out = Path(args.out) if args.out else next_version_path("manifests", args.dataset)
     write_manifest(manifest, out)
     h = manifest["header"]
@@ -177,6 +181,9 @@ def _compile(args) -> int:
     elif c["unreviewed_flagged_accepted"]:
         print(f"warning: {c['unreviewed_flagged_accepted']} flagged subject(s) accepted without review; review them "
               "(label-tool review --queue suspicious) or compile with --unreviewed reject-flagged")
+    if c["unverified_shards"]:
+        print(f"warning: the subjects of {len(c['unverified_shards'])} unverified shard(s) were rejected: "
+              f"{', '.join(c['unverified_shards'][:5])}")
     for s in h["conflicts"][:20]:
         print(f"  conflict: {s}")
     return 0

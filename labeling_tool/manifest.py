@@ -13,7 +13,8 @@ from datagen.errors import UserError
 from datagen.files import atomic_write
 from datagen.manifests import FORMAT, read_manifest
 from datagen.preflags import is_stale, read_preflags
-from datagen.shards import dumps, index_sha256, read_index
+from datagen.shards import dumps, index_sha256, read_index, shard_index, tar_path
+from datagen.verify import check_shards
 
 from datagen.events import read_logs, verdicts
 
@@ -43,8 +44,13 @@ def merge(votes: dict[str, tuple[str, tuple]], policy: str, unreviewed: str, fla
 
 
 def compile_manifest(dataset, labels_dir, policy: str = "any-bad", unreviewed: str = "accept",
-                     test_count: int | None = None, parent=None) -> dict:
-    """Build the manifest dict (not written); see the module docstring."""
+                     test_count: int | None = None, parent=None, skip_unverified: bool = False) -> dict:
+    """Build the manifest dict (not written); see the module docstring.
+
+    Every shard of the index is checked first as ``datagen verify`` does (sidecar, size, sha256;
+    cached): one it cannot vouch for is a UserError naming it, or with ``skip_unverified`` its
+    subjects are rejected with the reason ``unverified_shard``.
+    """
     if test_count is not None and test_count < 0:
         raise UserError(f"--test-count must be 0 or more, not {test_count}")
     if policy not in POLICIES:
@@ -53,6 +59,11 @@ def compile_manifest(dataset, labels_dir, policy: str = "any-bad", unreviewed: s
         raise UserError(f"--unreviewed must be one of: {', '.join(UNREVIEWED)}")
     index = read_index(dataset)
     index_sha = index_sha256(dataset)
+    unverified = shard_problems(dataset, index)
+    if unverified and not skip_unverified:
+        first = next(iter(unverified.values()))
+        raise UserError(f"{first}" + (f" (and {len(unverified) - 1} more shard(s))" if len(unverified) > 1 else "")
+                        + "; its subjects cannot be vouched for (pass --skip-incomplete to reject them)")
     logs, problems = read_logs(labels_dir)
     flagged = flagged_subjects(dataset, required=unreviewed == "reject-flagged")
     per_reviewer = {r: {s: (e.action, e.reasons) for s, e in verdicts(ev).items() if e.action in ("good", "bad")}
@@ -66,6 +77,8 @@ def compile_manifest(dataset, labels_dir, policy: str = "any-bad", unreviewed: s
         for s in shard["subjects"]:
             votes = {r: v[s] for r, v in per_reviewer.items() if s in v}
             verdict, reasons = merge(votes, policy, unreviewed, flagged is not None and s in flagged)
+            if shard["name"] in unverified:
+                verdict, reasons = "rejected", ["unverified_shard"]
             if len({v[0] for v in votes.values()}) > 1:
                 conflicts.append(s)
             rows.append({"subject": s, "shard": shard["name"], "verdict": verdict, "reasons": reasons,
@@ -92,6 +105,7 @@ def compile_manifest(dataset, labels_dir, policy: str = "any-bad", unreviewed: s
         "train": sum(1 for r in accepted if r["split"] == "train"),
         "test": len(test),
         "conflicts": len(conflicts),
+        "unverified_shards": sorted(unverified),
         "unreviewed": len(unreviewed_rows),
         "unreviewed_flagged": None if flagged is None else len(unreviewed_flagged),
         "unreviewed_flagged_accepted": None if flagged is None else
@@ -111,6 +125,17 @@ def compile_manifest(dataset, labels_dir, policy: str = "any-bad", unreviewed: s
         "log_problems": problems,
     }
     return {"header": header, "subjects": rows}
+
+
+def shard_problems(dataset, index: dict) -> dict[str, str]:
+    """{shard name: its first problem} for the index's shards that fail the sidecar/size/sha256 check."""
+    tars = {str(tar_path(dataset, shard_index(sh["name"]))): sh["name"] for sh in index["shards"]}
+    out = {}
+    for line in check_shards(dataset, [shard_index(sh["name"]) for sh in index["shards"]]):
+        name = tars.get(line.split(":", 1)[0])
+        if name is not None:
+            out.setdefault(name, line)
+    return out
 
 
 def flagged_subjects(dataset, required: bool) -> set[str] | None:

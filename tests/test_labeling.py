@@ -235,6 +235,39 @@ def test_compile_is_deterministic_versioned_and_immutable(tiny_dataset, tmp_path
     assert "never edited" in capsys.readouterr().err and out1.read_bytes() == before
 
 
+@pytest.mark.parametrize("damage", ["truncate", "flip", "no_sidecar", "bad_sidecar"])
+def test_compile_vouches_only_for_verified_shards(tiny_dataset, tmp_path, capsys, damage):
+    import shutil
+    from datagen.shards import sidecar_path, tar_path
+    ds = tmp_path / "ds"
+    shutil.copytree(tiny_dataset, ds)
+    tar = tar_path(ds, 1)
+    if damage == "truncate":
+        tar.write_bytes(tar.read_bytes()[:3000])
+    elif damage == "flip":
+        data = bytearray(tar.read_bytes())
+        data[len(data) // 2] ^= 1
+        tar.write_bytes(bytes(data))
+    elif damage == "no_sidecar":
+        sidecar_path(ds, 1).unlink()
+    else:
+        sidecar_path(ds, 1).write_text("{")
+    out = tmp_path / "m" / "ds-v1.json"
+    (tmp_path / "labels").mkdir()
+    args = ["compile", str(ds), "--labels", str(tmp_path / "labels"), "--out", str(out)]
+    assert label_main(args) == 2
+    err = capsys.readouterr().err
+    assert "shard-000001" in err and "--skip-incomplete" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+    assert label_main(args + ["--skip-incomplete"]) == 0
+    m = read_manifest(out)
+    rows = {r["subject"]: r for r in m["subjects"]}
+    bad = [r for r in rows.values() if r["shard"] == "shard-000001"]
+    assert bad and all(r["verdict"] == "rejected" and r["reasons"] == ["unverified_shard"] for r in bad)
+    assert m["header"]["counts"]["unverified_shards"] == ["shard-000001"]
+    assert "1 unverified shard(s) were rejected" in capsys.readouterr().out
+
+
 def test_negative_test_count_is_refused(tiny_dataset, tmp_path, capsys):
     out = tmp_path / "m" / "demo-v1.json"
     assert label_main(["compile", str(tiny_dataset), "--labels", str(tmp_path / "none"), "--out", str(out),
