@@ -60,7 +60,8 @@ def _cylinder_hit(o, d, c, radius, y0, y1):
 
 
 def make_head(rng, key, views=VIEWS, protocol="360", defect=None):
-    """A SubjectSample of an analytic head; defect in (None, 'janus', 'floaters', 'hole', 'see_through')."""
+    """A SubjectSample of an analytic head; defect in (None, 'janus', 'floaters', 'hole', 'see_through',
+    'flat_back', 'seam')."""
     radii = np.array([0.19, 0.23, 0.22]) * rng.uniform(0.95, 1.05, 3)
     tone = rng.uniform(0.45, 1.0)
     skin = (np.array([0.97, 0.80, 0.69]) * (1 - tone) + np.array([0.33, 0.20, 0.13]) * tone)
@@ -105,6 +106,12 @@ def make_head(rng, key, views=VIEWS, protocol="360", defect=None):
             hits.append(_ellipsoid_hit(o, d, c, np.array([r, r, r])))
         t = np.min(np.stack(hits), 0)
         which = np.argmin(np.stack(hits), 0)
+        if defect == "flat_back":  # the head cut by the plane z = -0.06: rays meet the plane first
+            cut = -0.06
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t_plane = (cut - o[..., 2]) / d[..., 2]
+            behind = (which == 0) & np.isfinite(t) & (o[..., 2] + t * d[..., 2] < cut)
+            t = np.where(behind, t_plane, t)
         m = np.isfinite(t)
         p = o + np.where(m, t, 0)[..., None] * d
         n = p / radii ** 2
@@ -125,6 +132,8 @@ def make_head(rng, key, views=VIEWS, protocol="360", defect=None):
             col[(np.abs(x) < 0.04) & (np.abs(y + 0.11) < 0.012) & (zs > 0.1)] = [0.7, 0.2, 0.2]
         for i, (_, _, bc) in enumerate(blobs):
             col[which == 3 + i] = bc
+        if defect == "seam":  # the two halves of the back do not meet: one side a shade lighter
+            col[(which == 0) & (z < 0) & (x > 0)] = 0.5 * col[(which == 0) & (z < 0) & (x > 0)] + 0.3
         shade = 0.4 + 0.6 * np.clip((n * light).sum(-1), 0, 1)
         col = np.clip(col * shade[..., None], 0, 1)
         dep = np.where(m, CAMERA - (p * -fwd).sum(-1) + 0.0, 0.0)
@@ -173,6 +182,51 @@ def emptied(s: SubjectSample, views=(3, 9)) -> SubjectSample:
     rgb = [np.full_like(c, 255) if i in views else c for i, c in enumerate(s.rgb)]
     depth = [np.zeros_like(d) if i in views else d for i, d in enumerate(s.depth)]
     return SubjectSample(s.key, s.metadata, rgb, alpha, depth, {})
+
+
+def back_views(s: SubjectSample, within=70.0):
+    return [i for i, v in enumerate(s.metadata["views"]) if abs((v["yaw_deg"] - 180 + 180) % 360 - 180) <= within]
+
+
+def blurry_back(s: SubjectSample, sigma=1.6) -> SubjectSample:
+    back = set(back_views(s))
+    rgb = [np.clip(ndi.gaussian_filter(c.astype(np.float64), (sigma, sigma, 0)), 0, 255).astype(np.uint8)
+           if i in back else c for i, c in enumerate(s.rgb)]
+    return SubjectSample(s.key, s.metadata, rgb, s.alpha, s.depth, {})
+
+
+def hazy(s: SubjectSample, level=0.3) -> SubjectSample:
+    """A semi-transparent grey cloud beside the head in every view."""
+    yy, xx = np.mgrid[:RES, :RES] / RES
+    cloud = np.clip(1 - np.hypot(xx - 0.85, yy - 0.35) / 0.16, 0, 1) * level
+    alpha, rgb = [], []
+    for a, c in zip(s.alpha, s.rgb):
+        a0 = a.astype(np.float64) / 255
+        a1 = np.maximum(a0, cloud * (a0 < 0.5))
+        add = (a1 - a0)[..., None]
+        rgb.append(np.clip(np.rint(c * (1 - add) + 150 * add), 0, 255).astype(np.uint8))
+        alpha.append(np.clip(np.rint(a1 * 255), 0, 255).astype(np.uint8))
+    return SubjectSample(s.key, s.metadata, rgb, alpha, s.depth, {})
+
+
+def face_on_the_back(s: SubjectSample) -> SubjectSample:
+    """A photographed face (scikit-image's astronaut) painted over the back views' hair."""
+    from PIL import Image
+    from skimage import data
+    face = Image.fromarray(data.astronaut()[70:190, 165:285])
+    rgb = list(s.rgb)
+    for i in back_views(s, 50.0):
+        m = s.alpha[i] > 127
+        rows, cols = np.nonzero(m.any(1))[0], np.nonzero(m.any(0))[0]
+        h, w = int(0.62 * (rows[-1] - rows[0])), int(0.62 * (cols[-1] - cols[0]))
+        r0, c0 = rows[0] + int(0.12 * (rows[-1] - rows[0])), int(cols.mean() - w / 2)
+        patch = np.asarray(face.resize((w, h), Image.BILINEAR))
+        img = rgb[i].copy()
+        region = img[r0:r0 + h, c0:c0 + w]
+        inside = m[r0:r0 + h, c0:c0 + w, None]
+        img[r0:r0 + h, c0:c0 + w] = np.where(inside, patch[:region.shape[0], :region.shape[1]], region)
+        rgb[i] = img
+    return SubjectSample(s.key, s.metadata, rgb, s.alpha, s.depth, {})
 
 
 def far_away(s: SubjectSample, factor=1.6) -> SubjectSample:
@@ -276,6 +330,37 @@ def test_duplicate(clean_heads):
     assert clean_heads[5].key in by_key[copy.key]["detectors"]["duplicate"]["why"]
     others = [k for k in by_key if k not in (copy.key, clean_heads[5].key)]
     assert all("duplicate" not in by_key[k]["flags"] for k in others)
+
+
+def test_flat_back(clean_heads):
+    bad = make_head(np.random.default_rng(109), "subj99999980", defect="flat_back")
+    got = _check(clean_heads, bad, "flat_back")
+    assert "back view v04" in got["detectors"]["flat_back"]["why"]
+
+
+def test_seam(clean_heads):
+    bad = make_head(np.random.default_rng(110), "subj99999981", defect="seam")
+    got = _check(clean_heads, bad, "seam")
+    assert "centre columns" in got["detectors"]["seam"]["why"]
+
+
+def test_blurry_back(clean_heads):
+    bad = blurry_back(make_head(np.random.default_rng(111), "subj99999982"))
+    got = _check(clean_heads, bad, "blurry_back")
+    assert "front views' sharpness (around v00" in got["detectors"]["blurry_back"]["why"]
+    assert "blur" not in got["flags"]  # the front is sharp: it is the back that is blurred
+
+
+def test_haze(clean_heads):
+    bad = hazy(make_head(np.random.default_rng(112), "subj99999983"))
+    got = _check(clean_heads, bad, "haze")
+    assert "floaters" not in got["flags"]  # semi-transparent, attached to nothing opaque
+
+
+def test_face_detector_finds_a_photographed_face_on_the_back(clean_heads):
+    bad = face_on_the_back(make_head(np.random.default_rng(113), "subj99999984"))
+    got = _check(clean_heads, bad, "janus")
+    assert "face detector on v0" in got["detectors"]["janus"]["why"]
 
 
 def test_janus_not_applicable_without_back_views():

@@ -1,9 +1,12 @@
 """janus: a second face on the back of the head.
 
-The back view (yaw ~180) is compared with the front view (yaw ~0, as is and mirrored) on edge
-structure and on the colour layout of the face region, and searched for a nose-like depth bump where
-the front view has its nose; the score is the mean of the three robust z-scores against the dataset.
-Not applicable (score 0) without a back view, e.g. in the ``frontal`` protocol.
+Two cues; the subject's score is the stronger. (1) A face detector (dlib's HOG detector, which works
+offline) on the back and back-diagonal views (yaw ~135, ~180, ~225), at a scale where a face of the
+subject's size is large enough for it: its best detection score. (2) The back view (yaw ~180)
+compared with the front view (yaw ~0, as is and mirrored) on edge structure and on the colour layout
+of the face region, and searched for a nose-like depth bump where the front view has its nose: the
+mean of the three robust z-scores against the dataset. Not applicable (score 0) without a back view,
+e.g. in the ``frontal`` protocol.
 """
 from __future__ import annotations
 
@@ -18,6 +21,23 @@ from datagen.shards import view_name
 from .detector import Detector, Flag
 from .imaging import blob_response, central, nearest_fill, ramp, robust
 from .views import BACK_TOL
+
+BACK_TARGETS = (135.0, 180.0, 225.0)  # equator targets whose views should never show a face
+NO_FACE = -1.0                        # the detector's score when it reports nothing (its floor here)
+
+
+def _face_detector():
+    import dlib
+    return dlib.get_frontal_face_detector()
+
+
+def best_face(rgb: np.ndarray, detector=None) -> float:
+    """The best HOG face-detection score in an RGB image (NO_FACE when none reaches it). The image is
+    upsampled until a face about a third of the image wide is some 80 px, the detector's minimum."""
+    detector = detector or _face_detector()
+    up = max(0, math.ceil(math.log2(80.0 / (0.35 * rgb.shape[1])))) if rgb.shape[1] < 230 else 0
+    _, scores, _ = detector.run(np.ascontiguousarray(rgb), up, NO_FACE)
+    return float(max(scores, default=NO_FACE))
 
 
 def edge_ncc(a_grey, a_mask, b_grey, b_mask, s: float) -> float:
@@ -101,9 +121,22 @@ class Janus(Detector):
     class Settings:
         z: float = 1.5          # mean of the edge, face-colour and nose-bump robust z-scores
         z_sat: float = 4.0
+        face: float = 0.0       # face-detector score at which a back view's face flags (dlib's own threshold)
+        face_sat: float = 1.0
+
+    def __init__(self, settings=None):
+        super().__init__(settings)
+        self._detector = None
 
     def threshold(self):
-        return self.settings.z
+        return {"cue_z": self.settings.z, "face_score": self.settings.face}
+
+    def _faces(self, v) -> dict:
+        """{view: best face score} of the back and back-diagonal views."""
+        if self._detector is None:
+            self._detector = _face_detector()
+        views = {v.eq[t] for t in BACK_TARGETS if t in v.eq and v.rgb.get(v.eq[t]) is not None}
+        return {i: best_face(v.rgb[i], self._detector) for i in sorted(views)}
 
     def measure(self, v):
         front, back = v.front, v.back
@@ -113,7 +146,9 @@ class Janus(Detector):
         if front not in v.work or back not in v.work or v.work[front][1].sum() < 30 or v.work[back][1].sum() < 30:
             return {"na": "not measured: the front or back view is (almost) empty"}
         sim, colour, relief = face_evidence(v.work[front], v.work[back], v.s)
-        return {"back": back, "front": front, "sim": sim, "colour": colour, "relief": relief}
+        faces = self._faces(v)
+        return {"back": back, "front": front, "sim": sim, "colour": colour, "relief": relief, "faces": faces,
+                "yaw": {i: float(v.views[i]["yaw_deg"]) for i in faces}}
 
     def baseline(self, measured):
         jan = [m for m in measured if m and "na" not in m]
@@ -128,9 +163,19 @@ class Janus(Detector):
         zr = (math.log(j["relief"] + 1e-4) - base["relief"][0]) / base["relief"][1]
         m = (zs + zc + zr) / 3.0
         t = self.settings
-        return Flag(ramp(m, t.z, t.z_sat),
-                    f"back view {view_name(j['back'])} vs front {view_name(j['front'])}: edge corr "
-                    f"{j['sim']:.2f} (dataset median {base['sim'][0]:.2f}), face-colour corr "
-                    f"{j['colour']:.2f} (median {base['colour'][0]:.2f}), nose-like bump "
-                    f"{j['relief']:.4f} (median {math.exp(base['relief'][0]) - 1e-4:.4f}); z {m:.1f} (flag at {t.z:g})",
-                    m)
+        cue = Flag(ramp(m, t.z, t.z_sat),
+                   f"back view {view_name(j['back'])} vs front {view_name(j['front'])}: edge corr "
+                   f"{j['sim']:.2f} (dataset median {base['sim'][0]:.2f}), face-colour corr "
+                   f"{j['colour']:.2f} (median {base['colour'][0]:.2f}), nose-like bump "
+                   f"{j['relief']:.4f} (median {math.exp(base['relief'][0]) - 1e-4:.4f}); z {m:.1f} (flag at {t.z:g})",
+                   m)
+        faces = j.get("faces") or {}
+        if not faces:
+            return cue
+        view, best = max(faces.items(), key=lambda kv: kv[1])
+        face = ramp(best - NO_FACE, t.face - NO_FACE, t.face_sat - NO_FACE)
+        seen = (f"face detector on {view_name(view)} (yaw {j.get('yaw', {}).get(view, 0):.0f}): score {best:.2f} "
+                f"(flag at {t.face:g})") if best > NO_FACE else "no face found on the back views"
+        if face > cue.score:
+            return Flag(face, f"{seen}; {cue.why}", cue.value)
+        return Flag(cue.score, f"{cue.why}; {seen}", cue.value)

@@ -1,0 +1,181 @@
+"""Three things 3D GANs get wrong at the back of the head, each measured on the back view (yaw ~180).
+
+flat_back    a flattened or truncated back: a round head's back view bulges toward the camera, its
+             depth at 80 % of the silhouette's half-width lying about 0.4 half-widths behind its
+             centre; a cut-off back is nearly flat. Measure: that depth difference over the
+             half-width (world units, from the view's focal), robust z against the dataset.
+seam         a seam or discontinuity down the back: the horizontal colour gradient of the columns
+             at the centre of the back view against the busiest tenth of the head's other columns
+             (log ratio), robust z against the dataset.
+blurry_back  a blurry or smeared back: the sharpness of the silhouette edges in the back views
+             (yaw 135-225) against the front views (yaw 315-45) of the same subject (the blur
+             detector's content-independent measure, log ratio), robust z.
+
+Not applicable without a back view (the ``frontal`` protocol); blurry_back also needs a front view.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage as ndi
+
+from datagen.cameras import fov_to_focal
+from datagen.shards import view_name
+
+from .detector import Detector, Flag
+from .blur import edge_sharpness
+from .imaging import bbox, ramp, robust
+
+BACK_SIDE, FRONT_SIDE = (135.0, 180.0, 225.0), (315.0, 0.0, 45.0)  # equator targets of each side
+NA = "not applicable: no back view (yaw 180 +- 20, pitch within 20) among this subject's cameras"
+
+
+def _back(v):
+    """(view index, colour, mask, depth) of the back view at the working resolution, or None."""
+    b = v.back
+    if b is None or b not in v.work or v.work[b][1].sum() < 40:
+        return None
+    return (b, *v.work[b])
+
+
+def bulge(mask: np.ndarray, depth: np.ndarray, focal_px: float) -> float | None:
+    """(depth at 80 % of the half-width - depth at the centre) / half-width (world units), or None."""
+    top, bot, left, right = bbox(mask)
+    rows = slice(top + int(0.25 * (bot - top)), top + int(0.6 * (bot - top)) + 1)
+    sub_m, sub_d = mask[rows], depth[rows]
+    cols = np.nonzero(sub_m.any(0))[0]
+    if cols.size < 8:
+        return None
+    cx, half = 0.5 * (cols[0] + cols[-1]), 0.5 * (cols[-1] - cols[0])
+    x = np.arange(mask.shape[1])
+    centre = sub_m & (np.abs(x - cx) <= 0.15 * half)[None]
+    rim = sub_m & (np.abs(np.abs(x - cx) - 0.8 * half) <= 0.08 * half)[None]
+    if centre.sum() < 3 or rim.sum() < 3:
+        return None
+    zc, zr = float(np.median(sub_d[centre])), float(np.median(sub_d[rim]))
+    half_world = half * zc / focal_px
+    return (zr - zc) / max(half_world, 1e-6)
+
+
+def seam_ratio(colour: np.ndarray, mask: np.ndarray) -> float | None:
+    """log of the mean |horizontal colour gradient| of the central columns over the 90th percentile of the
+    other head columns' (hair strands make some columns busy; a seam makes the centre stand out)."""
+    top, bot, left, right = bbox(mask)
+    inner = ndi.binary_erosion(mask, iterations=2)
+    inner[top + int(0.7 * (bot - top)):] = False  # the head, not the neck
+    g = np.abs(np.diff(colour, axis=1)).sum(-1)
+    ok = inner[:, 1:] & inner[:, :-1]
+    cols = np.nonzero(ok.any(0))[0]
+    if cols.size < 10:
+        return None
+    per_col = np.array([g[ok[:, c], c].mean() if ok[:, c].sum() >= 3 else np.nan for c in range(g.shape[1])])
+    cx, half = 0.5 * (cols[0] + cols[-1]), 0.5 * (cols[-1] - cols[0])
+    x = np.arange(g.shape[1])
+    central = (np.abs(x - cx) <= max(1.0, 0.08 * half)) & np.isfinite(per_col)
+    other = (np.abs(x - cx) > 0.2 * half) & (np.abs(x - cx) < 0.8 * half) & np.isfinite(per_col)
+    if not central.any() or other.sum() < 3:
+        return None
+    return float(np.log((per_col[central].max() + 1e-4) / (np.quantile(per_col[other], 0.9) + 1e-4)))
+
+
+class _BackDetector(Detector):
+    """A robust z-score of one back-view measure against the dataset (``sign`` -1: low is bad)."""
+
+    sign = 1.0
+    floor = 0.05
+    unit = ""
+
+    @dataclass(frozen=True)
+    class Settings:
+        z: float = 4.0
+        z_sat: float = 8.0
+
+    def threshold(self):
+        return self.settings.z
+
+    def explain(self, m, med) -> str:
+        raise NotImplementedError
+
+    def baseline(self, measured):
+        return robust([m["x"] for m in measured if m and "na" not in m], self.floor)
+
+    def score(self, m, base, index, keys):
+        if m is None:
+            return Flag(0.0, "not measured (the back view is (almost) empty)")
+        if "na" in m:
+            return Flag(0.0, m["na"])
+        med, scale = base
+        z = self.sign * (m["x"] - med) / scale
+        t = self.settings
+        return Flag(ramp(z, t.z, t.z_sat), f"{self.explain(m, med)}; z {z:.1f} (flag at {t.z:g})", z)
+
+
+class FlatBack(_BackDetector):
+    name = "flat_back"
+    description = ("a flattened or truncated back of the head: how far the back view's surface curves away from "
+                   "the camera across the head (depth at 80% of the half-width minus at the centre, over the "
+                   "half-width), robust z against the dataset; n/a without a back view")
+    sign = -1.0
+
+    def measure(self, v):
+        got = _back(v)
+        if v.back is None:
+            return {"na": NA}
+        if got is None:
+            return None
+        b, _, m, d = got
+        focal_px = float(fov_to_focal(v.views[b]["fov_deg"])) * m.shape[1]
+        x = bulge(m, d, focal_px)
+        return None if x is None else {"x": x, "view": b}
+
+    def explain(self, m, med):
+        return (f"back view {view_name(m['view'])}: the surface falls back {m['x']:.2f} half-widths from centre to "
+                f"rim (dataset median {med:.2f})")
+
+
+class Seam(_BackDetector):
+    name = "seam"
+    description = ("a seam or discontinuity down the back: horizontal colour gradient of the back view's central "
+                   "columns against the head's other columns (log ratio), robust z against the dataset; n/a "
+                   "without a back view")
+
+    def measure(self, v):
+        got = _back(v)
+        if v.back is None:
+            return {"na": NA}
+        if got is None:
+            return None
+        b, c, m, _ = got
+        x = seam_ratio(c, m)
+        return None if x is None else {"x": x, "view": b}
+
+    def explain(self, m, med):
+        return (f"back view {view_name(m['view'])}: the centre columns change colour {math.exp(m['x']):.1f}x as much "
+                f"as the rest of the head (dataset median {math.exp(med):.1f}x)")
+
+
+class BlurryBack(_BackDetector):
+    name = "blurry_back"
+    description = ("a blurry or smeared back: the back views' silhouette edges against the front views' of the same "
+                   "subject (log ratio of gradient energy across the edge to a sharp cut-out's), robust z against "
+                   "the dataset; n/a without back and front views")
+    sign = -1.0
+
+    def measure(self, v):
+        if v.back is None or v.front is None:
+            return {"na": NA if v.back is None else "not applicable: no front view"}
+        sides = {}
+        for name, targets in (("back", BACK_SIDE), ("front", FRONT_SIDE)):
+            views = [v.eq[t] for t in targets if t in v.eq and v.rgb.get(v.eq[t]) is not None]
+            sharp = [x for x in (edge_sharpness(v.rgb[i], v.alpha[i]) for i in views) if np.isfinite(x)]
+            if not sharp:
+                return None
+            sides[name] = float(np.median(sharp))
+        return {"x": sides["back"] - sides["front"], "view": v.back, "front": v.front}
+
+    def explain(self, m, med):
+        return (f"the back views' silhouette edges (around {view_name(m['view'])}) carry {100 * math.exp(m['x']):.0f}% "
+                f"of the front views' sharpness (around {view_name(m['front'])}; dataset median "
+                f"{100 * math.exp(med):.0f}%)")
