@@ -59,8 +59,9 @@ REASON_KEYS = {str(i + 1): r for i, r in enumerate(REASONS)}
 REASON_SHORT = {"multiple_faces": "faces", "broken_back": "back", "artifacts": "artifacts", "blur": "blur",
                 "other": "other"}
 # the reason a triage click or space gives a cell, from its strongest pre-flag (labeling_tool.preflags)
-FLAG_REASON = {"janus": "multiple_faces", "holes": "broken_back", "floaters": "artifacts", "washed_out": "artifacts",
-               "blur": "blur", "empty": "other", "implausible": "other", "duplicate": "other"}
+FLAG_REASON = {"janus": "multiple_faces", "holes": "broken_back", "flat_back": "broken_back", "seam": "broken_back",
+               "floaters": "artifacts", "haze": "artifacts", "washed_out": "artifacts", "blur": "blur",
+               "blurry_back": "blur", "empty": "other", "implausible": "other", "duplicate": "other"}
 DEFAULT_REASON = "artifacts"
 TRIAGE_SHAPE = (5, 8)                     # rows, columns of a triage page
 TRIAGE_YAWS = (0.0, 180.0, 90.0, 270.0)   # the view shown in triage: front, back, left, right (c cycles)
