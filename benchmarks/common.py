@@ -80,6 +80,11 @@ def median(values) -> float:
     return float(statistics.median(values))
 
 
+def psnr_db(mse: float) -> float | None:
+    """PSNR in dB of a mean squared error of values in [0, 1]; None when the images are identical."""
+    return 10.0 * float(np.log10(1.0 / mse)) if mse > 0 else None
+
+
 @contextmanager
 def stage_clock(stages: dict):
     """Accumulate wall seconds spent in callables while the block runs.

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from benchmarks.common import (REPO, bullets, fmt, load_note, measurement_header, median, pyplot,  # noqa: E402
+from benchmarks.common import (REPO, bullets, fmt, load_note, measurement_header, median, psnr_db, pyplot,  # noqa: E402
                                report_main, report_name, reproduce, run_sections, table)
 from datagen.cameras import sample_views  # noqa: E402
 from datagen.generators import GANS, make_generator  # noqa: E402
@@ -218,11 +218,6 @@ def throughput(generators: dict, plan: Plan) -> dict:
 # ------------------------------------------------------------------------------------------------
 # 3. Samples per ray against error
 
-def psnr(mse: float):
-    """PSNR in dB of images in [0, 1]; None when identical."""
-    return 10.0 * math.log10(1.0 / mse) if mse > 0 else None
-
-
 def errors(out, ref) -> dict:
     """Per-view squared errors of the image and the mask against the reference."""
     rgb = ((out.rgb.astype(np.float64) - ref.rgb) ** 2).mean(axis=(1, 2, 3))
@@ -233,8 +228,8 @@ def errors(out, ref) -> dict:
 def error_summary(per_subject: list[dict]) -> dict:
     rgb = [m for e in per_subject for m in e["rgb_mse"]]
     alpha = [m for e in per_subject for m in e["alpha_mse"]]
-    return {"psnr_rgb_db": psnr(float(np.mean(rgb))), "worst_view_psnr_rgb_db": psnr(max(rgb)),
-            "psnr_alpha_db": psnr(float(np.mean(alpha)))}
+    return {"psnr_rgb_db": psnr_db(float(np.mean(rgb))), "worst_view_psnr_rgb_db": psnr_db(max(rgb)),
+            "psnr_alpha_db": psnr_db(float(np.mean(alpha)))}
 
 
 def sweep_model(g, plan: Plan) -> dict:
@@ -319,8 +314,8 @@ def clipping_model(g, plan_: Plan) -> dict:
     mse = float(np.mean((outs[True].rgb.astype(np.float64) - outs[False].rgb) ** 2))
     return {"box": list(box), "unclipped_s": median(seconds[False]), "clipped_s": median(seconds[True]),
             "missing_rays": float(np.mean(kept == 0)), "mean_range_kept": float(kept.mean()),
-            "psnr_rgb_db": psnr(mse),
-            "psnr_alpha_db": psnr(float(np.mean((outs[True].alpha.astype(np.float64) - outs[False].alpha) ** 2)))}
+            "psnr_rgb_db": psnr_db(mse),
+            "psnr_alpha_db": psnr_db(float(np.mean((outs[True].alpha.astype(np.float64) - outs[False].alpha) ** 2)))}
 
 
 def clipping(generators: dict, plan_: Plan) -> dict:
@@ -334,6 +329,9 @@ def sr_checkpoint_path(model: str) -> Path:
     return SHARED / "fixtures" / "gan-sr" / model / f"{model}-sr.pkl"
 
 
+PRECISION_VIEWS = 4  # fp16 convolutions run slowly on a CPU (~10x fp32): a few 512 px views tell the difference
+
+
 def precision(generators: dict, plan_: Plan) -> dict:
     out = {}
     for model in generators:
@@ -342,7 +340,7 @@ def precision(generators: dict, plan_: Plan) -> dict:
             out[model] = {"skipped": f"{path} not found"}
             continue
         g = make_generator(model, str(path), {"deterministic": True})
-        views = views_of(2, plan_.sweep_views)
+        views = views_of(2, min(plan_.sweep_views, PRECISION_VIEWS))
         subject = g.sample_subject(SEED, 2)
         images = {}
         for p in ("fp32", "fp16"):
@@ -350,7 +348,7 @@ def precision(generators: dict, plan_: Plan) -> dict:
             images[p], images[p + "_s"] = timed(g.render, subject, views, g.G.img_resolution)
         diff = np.abs(images["fp16"].rgb.astype(np.float64) - images["fp32"].rgb)
         out[model] = {"views": len(views), "resolution": g.G.img_resolution, "max_abs": float(diff.max()),
-                      "mean_abs": float(diff.mean()), "psnr_db": psnr(float(np.mean(diff ** 2))),
+                      "mean_abs": float(diff.mean()), "psnr_db": psnr_db(float(np.mean(diff ** 2))),
                       "levels_changed": float(np.mean(np.round(images["fp16"].rgb * 255) !=
                                                       np.round(images["fp32"].rgb * 255))),
                       "fp32_s": images["fp32_s"], "fp16_cpu_s": images["fp16_s"]}

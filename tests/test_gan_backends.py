@@ -153,15 +153,26 @@ def test_super_resolution_batches_never_hold_a_lone_view(n_views, size, expected
 
 @pytest.mark.parametrize("model", ["eg3d", "spherehead"])
 def test_budget_changes_the_split_not_the_images(model):
-    """Ray chunks of whole 1024s and SR batches of two or more views give the same bits."""
+    """Ray chunks of whole 1024s give the same bits; SR batch sizes change at most the last bits."""
+    from datagen.generators.gan import ChunkPlan
     views = _views(6)
-    out = []
-    for budget in (8, 4096):
-        g = make_generator(model, str(gan_fixture(model, ".pkl")), {"memory_budget_mb": budget})
-        out.append(g.render(g.sample_subject(0, 3), views, 64))
-    assert g.plan.rays >= 4 * 1024 and g.plan.images >= 6
-    for a, b in zip((out[0].rgb, out[0].alpha, out[0].depth), (out[1].rgb, out[1].alpha, out[1].depth)):
+    out = {}
+    for rays, images in ((1024, 6), (4096, 6), (4096, 2)):
+        g = make_generator(model, str(gan_fixture(model, ".pkl")))
+        g.plan = ChunkPlan(rays, images)
+        out[rays, images] = g.render(g.sample_subject(0, 3), views, 64)
+    small, large, split = out[1024, 6], out[4096, 6], out[4096, 2]
+    for a, b in zip((small.rgb, small.alpha, small.depth), (large.rgb, large.alpha, large.depth)):
         np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(split.alpha, large.alpha)
+    np.testing.assert_array_equal(split.depth, large.depth)
+    assert np.abs(split.rgb - large.rgb).max() <= 2e-6
+
+
+def test_memory_budget_sets_the_plan():
+    plans = [make_generator("eg3d", str(gan_fixture("eg3d", ".pkl")), {"memory_budget_mb": mb}).plan
+             for mb in (8, 4096)]
+    assert plans[0].rays < plans[1].rays and plans[1].rays >= 4 * 1024 and plans[1].images >= 6
 
 
 def test_clipped_rays_stay_inside_the_box_and_misses_are_skipped():

@@ -34,8 +34,9 @@ BACKGROUNDS = ("own", "black", "white", "grey")
 CPU_BUDGET_MB = 64
 CUDA_BUDGET_FRACTION = 0.25
 # Ray chunks are whole multiples of this (measured: the decoder's matrix products then give the same
-# bits for every ray whatever the chunk size); super-resolution batches hold at least two views
-# (one view takes another convolution kernel, which changes the last bits).
+# bits for every ray whatever the chunk size). Super-resolution batches hold at least two views; the
+# convolution kernels MKL-DNN picks depend on the batch size, so on some CPUs (AMD EPYC, AVX2) two
+# batch sizes differ in the last bits of the image (<= 2e-6 on [0, 1], measured), never more.
 CHUNK_RAYS_QUANTUM = 1024
 MIN_SR_BATCH = 2
 
