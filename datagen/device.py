@@ -1,15 +1,19 @@
 """Compute devices: names users give on the command line -> torch devices (one home for the check)."""
 from __future__ import annotations
 
-import torch
+from typing import TYPE_CHECKING
 
 from .errors import UserError
+
+if TYPE_CHECKING:
+    import torch
 
 DEVICE_HELP = "cpu, cuda, cuda:N or auto (CUDA when available)"
 
 
 def resolve_device(name: str) -> torch.device:
     """'auto', 'cpu', 'cuda' or 'cuda:N' -> a torch device that exists here; a UserError otherwise."""
+    import torch  # here, so that command-line help can name the choices without importing torch
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     kind, _, index = name.partition(":")

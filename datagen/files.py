@@ -72,6 +72,9 @@ def read_json(path, what: str, fmt: str | None = None) -> dict:
         raise DatasetError(f"{path}: not a {what} (expected a JSON object, found {type(doc).__name__})")
     if fmt is not None:
         header = doc.get("header") if "format" not in doc else doc
+        if "header" in doc and not isinstance(header, dict):
+            raise DatasetError(f"{path}: not a {fmt} {what} (field 'header' must be an object, "
+                               f"not {type(header).__name__})")
         found = header.get("format") if isinstance(header, dict) else None
         if found != fmt:
             raise DatasetError(f"{path}: not a {fmt} {what} (format {found!r})")

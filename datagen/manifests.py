@@ -23,7 +23,7 @@ from pathlib import Path
 
 from .errors import DatasetError, UserError
 from .files import read_json, require
-from .shards import index_sha256, read_index
+from .shards import index_sha256, read_index, shard_index
 
 FORMAT = "panolam-manifest/1"
 VERDICTS = ("accepted", "rejected")
@@ -44,6 +44,10 @@ def read_manifest(path) -> dict:
                 raise DatasetError(f"{path}: {where} must be an object")
             require(row, "subject", str, path, where)
             require(row, "shard", str, path, where)
+            try:
+                shard_index(row["shard"])
+            except DatasetError as e:
+                raise DatasetError(f"{path}: {where}.shard: {e}") from None
             if row.get("verdict") not in VERDICTS:
                 raise DatasetError(f"{path}: {where}.verdict must be accepted or rejected, not {row.get('verdict')!r}")
             if row.get("split") not in SPLITS:

@@ -338,7 +338,7 @@ def prepare_output(spec: JobSpec, index: dict) -> None:
         raise UserError(f"cannot write to {out}: permission denied") from None
     except OSError as e:
         if e.errno == errno.ENOSPC:
-            raise UserError(f"disk full while writing to {out}") from None
+            raise UserError(f"disk full while writing {e.filename or out}") from None
         raise UserError(f"cannot write to {out}: {e.strerror}") from None
 
 
@@ -389,7 +389,8 @@ def run_sample(spec: JobSpec, *, workers: int = 1, backend: str = "local", ray_a
             _run_local(spec, todo, workers, bar)
     except OSError as e:
         if e.errno == errno.ENOSPC:
-            raise UserError(f"disk full while writing to {spec.out}; rerun with --resume once space is free") from None
+            raise UserError(f"disk full while writing {e.filename or spec.out}; "
+                            "rerun with --resume once space is free") from None
         raise
     finally:
         bar.close()

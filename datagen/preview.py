@@ -7,6 +7,7 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 from .errors import UserError
+from .files import atomic_write
 from .shards import is_complete, read_index, read_subject, subject_id
 
 MIN_CELL = 160
@@ -80,9 +81,8 @@ def write_contact_sheet(root, subject: str, out, columns: int = 8, with_mask_dep
     sheet = contact_sheet(root, parse_subject(subject), columns, with_mask_depth)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = out.with_name(f".{out.name}.tmp.png")
-        sheet.save(tmp)
-        tmp.replace(out)
+        fmt = Image.registered_extensions().get(out.suffix.lower(), "PNG")
+        atomic_write(out, lambda f: sheet.save(f, format=fmt))
     except OSError as e:
         raise UserError(f"cannot write {out}: {e.strerror}") from None
     return out

@@ -156,9 +156,9 @@ def check_shards(root, shards) -> list[str]:
     the sidecar is there and readable, and the tar has the size and sha256 it records, as
     ``datagen verify`` checks them (images are not decoded). Empty when all pass.
 
-    A shard that passed is remembered in ``root/.verified-shards.json`` with the size and mtime of
-    its tar and sidecar; while those stay the same it is not hashed again, so a second check costs
-    a few ``stat`` calls. A dataset folder that cannot be written is checked in full every time.
+    A shard that passed is remembered in ``root/.verified-shards.json`` with the size, inode, mtime
+    and ctime of its tar and sidecar; while those stay the same it is not hashed again, so a second
+    check costs a few ``stat`` calls (a write that restores the mtime still changes the ctime). A dataset folder that cannot be written is checked in full every time.
     """
     root = Path(root)
     cache_path = root / SHARD_CHECKS
@@ -197,4 +197,4 @@ def check_shards(root, shards) -> list[str]:
 
 def _stat_stamp(path: Path) -> list[int]:
     st = path.stat()
-    return [st.st_size, st.st_mtime_ns]
+    return [st.st_size, st.st_ino, st.st_mtime_ns, st.st_ctime_ns]

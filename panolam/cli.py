@@ -18,6 +18,7 @@ import sys
 import time
 from pathlib import Path
 
+from datagen.device import DEVICE_HELP
 from datagen.errors import OneLineParser, UserError, run_command
 
 from .config import PATH_FIELDS, ModelConfig, TrainConfig
@@ -31,12 +32,10 @@ INTERRUPTED = {"train": "the last checkpoint is kept; rerun with --resume",
                "infer": "nothing was written", "eval": "no report was written"}
 
 
-def _check_device(device: str) -> None:
-    """UserError unless ``device`` is ``cpu`` or an available ``cuda[:N]``."""
+def _check_device(args) -> None:
+    """Resolve ``args.device`` in place ('auto' -> cuda or cpu); UserError for one not available here."""
     from datagen.device import resolve_device
-    if device == "auto":
-        raise UserError("--device auto: name the device (cpu, cuda or cuda:N)")
-    resolve_device(device)
+    args.device = str(resolve_device(args.device))
 
 
 def _model_path_options(p, where_now: bool) -> None:
@@ -56,7 +55,7 @@ def _train_options(p):
     add_options(p, TrainConfig)
     _model_path_options(p, where_now=False)
     p.add_argument("--nproc", type=at_least(1), default=1, help="data-parallel processes on this machine")
-    p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
+    p.add_argument("--device", default="cpu", help=DEVICE_HELP)
     p.add_argument("--no-progress", action="store_true")
 
 
@@ -81,7 +80,7 @@ def build_parser() -> OneLineParser:
                    help="with several faces in the photo: refuse (single) or take the largest")
     p.add_argument("--no-crop", action="store_true", help="the photo is already framed like the training data")
     _model_path_options(p, where_now=True)
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", default="cpu", help=DEVICE_HELP)
     p = sub.add_parser("eval", help="metrics on held-out subjects (front in; front/left/back/right out)")
     p.add_argument("--data", required=True, help="dataset directory")
     p.add_argument("--manifest", required=True, help="curated manifest")
@@ -93,7 +92,7 @@ def build_parser() -> OneLineParser:
     add_options(p, TrainConfig, only=LPIPS_FIELDS)
     p.add_argument("--no-faces", action="store_true", help="skip CSIM/APD (they need dlib)")
     _model_path_options(p, where_now=True)
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", default="cpu", help=DEVICE_HELP)
     return parser
 
 
@@ -138,7 +137,7 @@ def _run_directory(args) -> None:
 def cmd_train(args) -> int:
     from . import launch
     _run_directory(args)
-    _check_device(args.device)
+    _check_device(args)
     model_cfg, train_cfg = _configs(args)
     job = launch.Job(args.data, args.manifest, args.out, args.resume, args.device, model_cfg, train_cfg,
                      progress=not args.no_progress, started=args.started)
@@ -156,7 +155,7 @@ def cmd_infer(args) -> int:
     from .faces import load_image, prepare_photo
     if not (args.out or args.turntable or args.views):
         raise UserError("nothing to write: give --out, --turntable and/or --views")
-    _check_device(args.device)
+    _check_device(args)
     model = load_model(args.ckpt, args.device, **given(args, ModelConfig, only=PATH_FIELDS))
     try:
         if args.no_crop:
@@ -181,7 +180,7 @@ def cmd_eval(args) -> int:
     from .checkpoints import model_from_checkpoint, read_checkpoint
     from .data import accepted_subjects
     from .evaluate import evaluate, write_report
-    _check_device(args.device)
+    _check_device(args)
     manifest = read_manifest(args.manifest)
     state = read_checkpoint(args.ckpt)
     trained_on = set(state.get("data", {}).get("subjects", []))

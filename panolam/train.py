@@ -371,9 +371,13 @@ def _writer(out: Path):
 
 
 def _log_text(out: Path, line: str, echo: bool = True) -> None:
-    """Append a line to ``out/train.log`` (and print it)."""
-    with open(out / "train.log", "a") as f:
-        f.write(line + "\n")
+    """Append a line to ``out/train.log`` (and print it); an OSError names the log."""
+    path = out / "train.log"
+    try:
+        with open(path, "a") as f:
+            f.write(line + "\n")
+    except OSError as e:
+        raise OSError(e.errno, e.strerror, str(path)) from None
     if echo:
         print(line, flush=True)
 

@@ -70,6 +70,21 @@ def test_absurd_kwargs_are_refused_before_anything_is_allocated(persistence_modu
     refused(path, r"big.pkl: shape mismatch")
 
 
+def test_views_that_repeat_a_few_stored_elements(persistence_module, tmp_path):
+    """Right names and shapes, but each tensor a stride-0 view of one stored element."""
+    g = load_stub(gan_fixture("eg3d", ".pkl", "gan-sr"))
+    todo = [g]
+    while todo:
+        node = todo.pop()
+        for group in ("_parameters", "_buffers"):
+            for name, t in (node.state.get(group) or {}).items():
+                if t is not None:
+                    node.state[group][name] = torch.zeros((), dtype=t.dtype).expand(t.shape)
+        todo += [m for m in (node.state.get("_modules") or {}).values() if m is not None]
+    path = write(tmp_path, "views.pkl", repickle(g, persistence_module._reconstruct_persistent_obj))
+    refused(path, r"views.pkl: refused to load: its tensors claim \d+ elements, more than its \d+ bytes")
+
+
 def test_a_bytes8_claiming_a_pebibyte(tmp_path):
     path = tmp_path / "claim.pkl"
     path.write_bytes(b"\x80\x04\x8e" + (1 << 50).to_bytes(8, "little") + b"abc.")

@@ -70,6 +70,21 @@ def test_preview_writes_a_labelled_contact_sheet(tiny_dataset, tmp_path, capsys)
     assert im.std() > 20  # not blank
 
 
+def test_preview_on_a_full_disk_is_one_line_and_leaves_no_temporary(tiny_dataset, tmp_path, capsys, monkeypatch):
+    import errno
+
+    from PIL import Image as PILImage
+
+    def full(self, fp, format=None, **params):
+        fp.write(b"\x89PNG")
+        raise OSError(errno.ENOSPC, "No space left on device")
+    monkeypatch.setattr(PILImage.Image, "save", full)
+    out = tmp_path / "sheets" / "sheet.png"
+    code, _, err = run(["preview", str(tiny_dataset), "--subject", "1", "--out", str(out)], capsys)
+    assert code == 2 and err.strip().endswith(f"cannot write {out}: No space left on device"), err
+    assert list(out.parent.iterdir()) == []
+
+
 def test_preview_with_mask_and_depth(tiny_dataset, tmp_path, capsys):
     out = tmp_path / "sheet.png"
     code, _, _ = run(["preview", str(tiny_dataset), "--subject", "subj00000000", "--out", str(out), "--mask-depth"],

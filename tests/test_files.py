@@ -89,7 +89,11 @@ def test_index_missing_a_key(tmp_path):
 
 
 @pytest.mark.parametrize("doc, message", [
-    ({"header": "panolam-manifest/1", "subjects": []}, "not a panolam-manifest/1 manifest"),
+    ({"header": "panolam-manifest/1", "subjects": []},
+     r"m.json: not a panolam-manifest/1 manifest \(field 'header' must be an object, not str\)"),
+    ({"header": {"format": "panolam-manifest/1"}, "subjects": [{"subject": "s", "shard": "../x",
+                                                               "verdict": "accepted", "split": "train"}]},
+     r"m.json: subjects\[0\].shard: '../x' is not a shard name"),
     ({"header": {"format": "panolam-manifest/1"}, "subjects": {}}, "field 'subjects' must be list"),
     ({"header": {"format": "panolam-manifest/1"}, "subjects": [{"subject": "s", "shard": "shard-000000",
                                                                "verdict": "maybe", "split": None}]},

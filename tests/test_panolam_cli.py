@@ -179,6 +179,33 @@ def test_read_only_folder_is_one_line(tmp_path):
     assert list(folder.iterdir()) == []
 
 
+def test_permission_denied_on_one_output_is_one_line_and_writes_nothing(tmp_path, monkeypatch):
+    """As any user (root included): the second output is refused, the first is not left behind."""
+    import datagen.files as files
+    real = open
+
+    def denied_for_back(path, mode="r", *a, **k):
+        if "back.png" in str(path):
+            raise PermissionError(errno.EACCES, "Permission denied", str(path))
+        return real(path, mode, *a, **k)
+    monkeypatch.setattr(files, "open", denied_for_back, raising=False)
+    with pytest.raises(cli.UserError, match="cannot write .*back.png: Permission denied"):
+        write_all(_outputs(tmp_path / "denied"))
+    assert not (tmp_path / "denied").exists()
+
+
+@pytest.mark.parametrize("device, message", [("cuda:x", "unknown device 'cuda:x'; use cpu, cuda, cuda:N or auto"),
+                                             ("tpu", "unknown device 'tpu'")])
+@pytest.mark.parametrize("command", ["train", "infer", "eval"])
+def test_an_unknown_device_is_one_line(command, device, message, capsys):
+    argv = {"train": ["train", "--data", "D", "--manifest", "M", "--out", "O"],
+            "infer": ["infer", "photo.png", "--ckpt", "C", "--out", "h.ply"],
+            "eval": ["eval", "--data", "D", "--manifest", "M", "--ckpt", "C"]}[command]
+    assert cli.main(argv + ["--device", device]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"panolam {command}: error: {message}") and err.count("\n") == 1, err
+
+
 @pytest.mark.parametrize("error, line", [
     (PermissionError(errno.EACCES, "Permission denied", "/runs/t1/train.log"), "/runs/t1/train.log: Permission denied"),
     (OSError(errno.ENOSPC, "No space left on device", "/runs/t1/checkpoint.pt"), "disk full (/runs/t1/checkpoint.pt)"),

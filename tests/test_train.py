@@ -6,6 +6,7 @@ import errno
 import io
 import json
 import math
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -421,6 +422,24 @@ def test_a_full_disk_while_writing_the_checkpoint_is_one_line_and_leaves_no_temp
     assert sorted(p.name for p in run.iterdir()) == ["tb", "train.log"]  # no checkpoint, no .checkpoint.pt.tmp
 
 
+def test_a_full_disk_while_appending_the_log_names_the_log(curated, tmp_path, monkeypatch, capsys):
+    import builtins
+    import panolam.train as train_module
+    from panolam.cli import main
+    data, manifest = curated
+
+    def opener(path, mode="r", *args, **kwargs):
+        if str(path).endswith("train.log"):
+            return _FullDisk(path, "ab")
+        return builtins.open(path, mode, *args, **kwargs)
+    monkeypatch.setattr(train_module, "open", opener, raising=False)
+    run = tmp_path / "run"
+    code = main(["train", "--data", str(data), "--manifest", str(manifest), "--out", str(run), "--steps", "1",
+                 "--views-per-sample", "3", "--render-resolution", "16", "--batch-size", "1", "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.strip() == f"panolam train: error: disk full ({run / 'train.log'})", err
+
+
 @pytest.fixture
 def damaged(curated, tmp_path):
     """A copy of the curated dataset; returns it, the manifest, and a training subject's shard and key."""
@@ -447,7 +466,9 @@ def test_training_checks_its_shards_first_and_remembers_those_that_passed(damage
     assert hashed == []  # the second time costs a stat per shard
     blob = bytearray(tar.read_bytes())
     blob[700] ^= 0xFF  # one flipped bit pattern, same size: only the hash can tell
+    st = tar.stat()
     tar.write_bytes(bytes(blob))
+    os.utime(tar, ns=(st.st_atime_ns, st.st_mtime_ns))  # even with its mtime put back
     with pytest.raises(DatasetError, match=f"{tar}: sha256 differs from the sidecar"):
         TrainingSamples(data, manifest, "train", 3, 16, 0)
     tar.unlink()

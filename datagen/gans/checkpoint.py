@@ -213,7 +213,7 @@ def read_checkpoint(path, expected_kind: str | None = None) -> LoadedCheckpoint:
     the opcodes are scanned before unpickling, the module tree and the stored kwargs are walked
     once each (sharing and depth refused), the kwargs are range-checked, and our modules are first
     built without memory (the meta device) and compared name by name and shape by shape with the
-    file's tensors before anything is allocated. Every refusal is one line naming the file.
+    file's tensors, whose elements must fit in the file's bytes, before anything is allocated. Every refusal is one line naming the file.
     """
     path = Path(path)
     hint = f" ({OFFICIAL_SOURCES[expected_kind]})" if expected_kind in OFFICIAL_SOURCES else ""
@@ -268,6 +268,10 @@ def read_checkpoint(path, expected_kind: str | None = None) -> LoadedCheckpoint:
         k = bad[0]
         raise CheckpointError(f"{path}: shape mismatch for {k}: file {tuple(state[k].shape)}, "
                               f"expected {tuple(own[k].shape)}")
+    elements = sum(state[k].numel() for k in own)
+    if elements > size:  # every stored element takes a byte or more: the rest are views repeating them
+        raise CheckpointError(f"{path}: refused to load: its tensors claim {elements} elements, more than its "
+                              f"{size} bytes can hold (stride-0 or overlapping views)")
     model = model.to_empty(device="cpu")  # now bounded: the file holds tensors of these very shapes
     model.load_state_dict({k: state[k].float() for k in own})
     nrr = g.state.get("neural_rendering_resolution", 64)
