@@ -40,6 +40,7 @@ def machine_info() -> dict:
             "numpy": np.__version__, "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
             "torch_interop_threads": torch.get_num_interop_threads(),
             "git_revision": software_info()["git_revision"], "load_average": list(os.getloadavg()),
+            "nice": os.nice(0),
             "date": datetime.now(timezone.utc).isoformat(timespec="seconds")}
 
 
@@ -257,7 +258,10 @@ def load_note(results: dict, run_cpus: int, busy_verdict: str) -> str:
     cpus = results["machine"]["usable_cpus"]
     during = {k: v for k, v in load.items() if k != "before"}
     busy = load["before"] > 0.5 * cpus or max(during.values()) > cpus + 1.0
+    nice = results["machine"].get("nice", 0)
+    priority = (f" The run had scheduling priority (nice {nice}) over that other work (nice 0), so it got the "
+                "CPUs first; times are still somewhat inflated (caches, memory bandwidth)." if busy and nice < 0 else "")
     return (f"1-minute load average {load['before']:.2f} before the run and "
             + ", ".join(f"{v:.2f} after {k}" for k, v in during.items())
             + f" (this run alone keeps about {run_cpus} busy): "
-            + (busy_verdict if busy else "the machine was otherwise idle."))
+            + (busy_verdict if busy else "the machine was otherwise idle.") + priority)
