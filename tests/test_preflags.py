@@ -372,6 +372,43 @@ def test_janus_not_applicable_without_back_views():
         assert "not applicable" in s["detectors"]["janus"]["why"]
 
 
+def _shifted(x, dy, dx):
+    """x moved by (dy, dx) px, zero where nothing moves in (no wrap-around)."""
+    out = np.zeros_like(x)
+    h, w = x.shape[:2]
+    out[max(dy, 0):h + min(dy, 0), max(dx, 0):w + min(dx, 0)] = x[max(-dy, 0):h + min(-dy, 0), max(-dx, 0):w + min(-dx, 0)]
+    return out
+
+
+def _pearson(x, y):
+    x, y = x - x.mean(0), y - y.mean(0)
+    den = math.sqrt(float((x * x).sum() * (y * y).sum()))
+    return float((x * y).sum() / den) if den > 0 else None
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_shifted_ncc_matches_its_definition_at_the_image_edges(seed):
+    """janus's edge and colour correlations (cv2.matchTemplate) against a per-shift numpy loop, with masks
+    that run into the image edges: nothing wraps around."""
+    from labeling_tool.preflags.janus import colour_ncc, edge_ncc
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:40, :44]
+    a_c, b_c = (ndi.gaussian_filter(rng.random((40, 44, 3)), (1.5, 1.5, 0)) for _ in range(2))
+    a_m = np.hypot(yy - rng.uniform(0, 40), xx - rng.uniform(0, 8)) < 24       # against the left edge
+    b_m = np.hypot(yy - rng.uniform(0, 40), xx - rng.uniform(36, 44)) < 24     # against the right edge
+    ga, gb = (np.hypot(ndi.sobel(g, 0), ndi.sobel(g, 1)) for g in (a_c.mean(-1), b_c.mean(-1)))
+    ia, ib = (ndi.binary_erosion(m, iterations=2) for m in (a_m, b_m))
+    region = a_m & b_m
+    edge, colour = [], []
+    for dy in range(-3, 4):
+        for dx in range(-3, 4):
+            m = ia & _shifted(ib, -dy, -dx)
+            edge.append(_pearson(ga[m], _shifted(gb, -dy, -dx)[m]) if m.sum() >= 20 else None)
+            colour.append(_pearson(_shifted(a_c, -dy, -dx)[region], b_c[region]))
+    assert edge_ncc(a_c.mean(-1), a_m, b_c.mean(-1), b_m, 1.0) == pytest.approx(max(filter(None, edge)), abs=1e-4)
+    assert colour_ncc(a_c, b_c, region, 1.0) == pytest.approx(max(filter(None, colour)), abs=1e-4)
+
+
 def test_undecodable_subject_is_flagged_not_dropped(clean_heads):
     recs = records(clean_heads[:4])
     error = "x.tar: subject subj00000099 lacks field 'v00.png'"

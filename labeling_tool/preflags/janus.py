@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from scipy import ndimage as ndi
 
@@ -40,47 +41,59 @@ def best_face(rgb: np.ndarray, detector=None) -> float:
     return float(max(scores, default=NO_FACE))
 
 
+def _match(image, template, mask, sh: int, method) -> np.ndarray:
+    """cv2.matchTemplate of ``template`` (cut to the bounding box of ``mask``) against ``image`` padded with
+    zeros by ``sh`` px: a (2 sh + 1, 2 sh + 1) map, one value per shift of up to ``sh`` px each way (the
+    centre is no shift). The image is empty beyond its edges: nothing wraps around."""
+    ys, xs = np.nonzero(mask)
+    y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+    padded = cv2.copyMakeBorder(np.asarray(image, np.float32), sh, sh, sh, sh, cv2.BORDER_CONSTANT, value=0)
+    window = np.ascontiguousarray(padded[y0:y1 + 2 * sh, x0:x1 + 2 * sh])
+    cut = np.ascontiguousarray(template[y0:y1, x0:x1], dtype=np.float32)
+    weights = None if method == cv2.TM_CCORR else np.ascontiguousarray(mask[y0:y1, x0:x1], dtype=np.uint8)
+    return cv2.matchTemplate(window, cut, method, mask=weights)
+
+
 def edge_ncc(a_grey, a_mask, b_grey, b_mask, s: float) -> float:
-    """Best normalised correlation of Sobel edge magnitude inside both (eroded) masks over small shifts."""
+    """Best normalised correlation of Sobel edge magnitude inside both (eroded) masks over small shifts.
+
+    For each shift of b (up to 3 s px each way) the correlation is over the overlap of the two masks (at
+    least 20 px). OpenCV's matchTemplate masks the template only, so the overlap's pixel count, sums and
+    sums of products come from six plain cross-correlations (TM_CCORR) of the masked images.
+    """
     ga = np.hypot(ndi.sobel(a_grey, 0), ndi.sobel(a_grey, 1))
     gb = np.hypot(ndi.sobel(b_grey, 0), ndi.sobel(b_grey, 1))
     it = max(1, int(round(2 * s)))
     ia = ndi.binary_erosion(a_mask, iterations=it)
     ib = ndi.binary_erosion(b_mask, iterations=it)
     sh = max(1, int(round(3 * s)))
-    best = -1.0
-    for dy in range(-sh, sh + 1):
-        for dx in range(-sh, sh + 1):
-            gbs = np.roll(gb, (dy, dx), (0, 1))
-            m = ia & np.roll(ib, (dy, dx), (0, 1))
-            if m.sum() < 20:
-                continue
-            x = ga[m] - ga[m].mean()
-            y = gbs[m] - gbs[m].mean()
-            den = math.sqrt(float((x * x).sum() * (y * y).sum()))
-            if den > 0:
-                best = max(best, float((x * y).sum() / den))
-    return best
+    if not ia.any() or not ib.any():
+        return -1.0
+    a, b = ia.astype(np.float32), ib.astype(np.float32)
+    # centred on each mask's mean (the correlation does not change): smaller sums, less cancellation
+    x = np.where(ia, ga - ga[ia].mean(), 0.0).astype(np.float32)
+    y = np.where(ib, gb - gb[ib].mean(), 0.0).astype(np.float32)
+    n, sx, sy, sxx, syy, sxy = (_match(img, tpl, ia, sh, cv2.TM_CCORR).astype(np.float64)
+                                for tpl, img in ((a, b), (x, b), (a, y), (x * x, b), (a, y * y), (x, y)))
+    n = np.rint(n)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        vx = sxx - sx * sx / n
+        vy = syy - sy * sy / n
+        r = (sxy - sx * sy / n) / np.sqrt(vx * vy)
+    ok = (n >= 20) & (vx > 1e-6 * sxx) & (vy > 1e-6 * syy)
+    return float(r[ok].max()) if ok.any() else -1.0
 
 
 def colour_ncc(back_c, front_c, region, s: float) -> float:
     """Best normalised correlation of colour (channels centred separately) over the region, shifting the
-    front view (and the region with it) by a few px."""
+    front view (and the region with it) by up to 3 s px: matchTemplate's TM_CCOEFF_NORMED with the region
+    as the front view's mask."""
     sh = max(1, int(round(3 * s)))
-    best = -1.0
-    for dy in range(-sh, sh + 1):
-        for dx in range(-sh, sh + 1):
-            r = np.roll(region, (dy, dx), (0, 1))
-            if r.sum() < 20:
-                continue
-            x = back_c[r]
-            y = np.roll(front_c, (dy, dx), (0, 1))[r]
-            x = x - x.mean(0)
-            y = y - y.mean(0)
-            den = math.sqrt(float((x * x).sum() * (y * y).sum()))
-            if den > 0:
-                best = max(best, float((x * y).sum() / den))
-    return best
+    if region.sum() < 20:
+        return -1.0
+    r = _match(back_c, front_c, region, sh, cv2.TM_CCOEFF_NORMED)
+    r = r[np.isfinite(r)]  # NaN where the back view is flat under the shifted region
+    return float(r.max()) if r.size else -1.0
 
 
 def face_evidence(front, back, s: float):
