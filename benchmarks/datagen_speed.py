@@ -22,7 +22,6 @@ import sys
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
-from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -30,8 +29,8 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from benchmarks.common import (bullets, fmt, load_note, measurement_header, median, pyplot,  # noqa: E402
-                               report_main, report_name, reproduce, run_sections, table)
+from benchmarks.common import (bullets, fmt, load_note, measurement_header, median, psnr_db,  # noqa: E402
+                               pyplot, report_main, report_name, reproduce, run_sections, stage_clock, table)
 from datagen.cameras import sample_views  # noqa: E402
 from datagen.generators import procedural  # noqa: E402
 from datagen.generators.base import STREAM_CAMERAS, STREAM_LATENT, subject_rng  # noqa: E402
@@ -50,8 +49,8 @@ DEFAULT_SAMPLES = (ProceduralConfig.samples, ProceduralConfig.samples_importance
 FG_ALPHA = 1e-3               # a pixel is foreground when either image covers it this much
 DEPTH_ALPHA = 0.5             # depth is compared where both images are at least this opaque
 WARMUP_INDEX = 10_000         # a subject outside every measured set
-# The procedural module's stages, timed by wrapping the module functions (see stage_clock).
-STAGES = ("head_field", "sphere_trace", "render_rays_chunked")
+# The procedural module's stages, timed by wrapping the module functions (see common.stage_clock).
+STAGES = {name: (procedural, name) for name in ("head_field", "sphere_trace", "render_rays_chunked")}
 
 
 @dataclass(frozen=True)
@@ -88,30 +87,6 @@ QUICK = Plan(speed_subjects=4, resolutions={64: 1, 128: 1, 256: 1},
 # ------------------------------------------------------------------------------------------------
 # Timing helpers
 
-@contextmanager
-def stage_clock():
-    """Accumulate wall time spent in the procedural module's STAGES while the block runs."""
-    totals = dict.fromkeys(STAGES, 0.0)
-    originals = {name: getattr(procedural, name) for name in STAGES}
-
-    def timed(name, fn):
-        def wrapper(*args, **kwargs):
-            start = time.perf_counter()
-            try:
-                return fn(*args, **kwargs)
-            finally:
-                totals[name] += time.perf_counter() - start
-        return wrapper
-
-    for name, fn in originals.items():
-        setattr(procedural, name, timed(name, fn))
-    try:
-        yield totals
-    finally:
-        for name, fn in originals.items():
-            setattr(procedural, name, fn)
-
-
 def generator(samples=DEFAULT_SAMPLES, deterministic=False, grid_resolution=128) -> ProceduralHeads:
     return ProceduralHeads(ProceduralConfig(grid_resolution=grid_resolution, samples=samples[0],
                                             samples_importance=samples[1], deterministic=deterministic))
@@ -123,7 +98,7 @@ def views_of(index: int, n_views: int = VIEWS):
 
 def bake(gen: ProceduralHeads, index: int):
     """(subject, seconds, stage seconds)."""
-    with stage_clock() as stages:
+    with stage_clock(STAGES) as stages:
         start = time.perf_counter()
         subject = gen.sample_subject(SEED, index)
         seconds = time.perf_counter() - start
@@ -132,7 +107,7 @@ def bake(gen: ProceduralHeads, index: int):
 
 def render(gen: ProceduralHeads, subject, views, resolution: int):
     """(RenderedViews, seconds, stage seconds)."""
-    with stage_clock() as stages:
+    with stage_clock(STAGES) as stages:
         start = time.perf_counter()
         out = gen.render(subject, views, resolution)
         seconds = time.perf_counter() - start
@@ -247,16 +222,12 @@ def error_sums(out, ref) -> dict:
             "depth_abs": float(np.abs(out.depth.astype(np.float64) - ref.depth)[both].sum()), "n_depth": int(both.sum())}
 
 
-def psnr(sse: float, n: int):
-    """PSNR in dB of images in [0, 1]; None when identical."""
-    return 10.0 * math.log10(n / sse) if sse > 0 else None
-
-
 def error_metrics(per_subject: list[dict]) -> dict:
     total = {k: sum(s[k] for s in per_subject) for k in per_subject[0]}
-    fg_per_subject = [psnr(s["sse_fg"], s["n_fg"]) for s in per_subject]
+    fg_per_subject = [psnr_db(s["sse_fg"] / max(1, s["n_fg"])) for s in per_subject]
     finite = [p for p in fg_per_subject if p is not None]
-    return {"psnr_db": psnr(total["sse"], total["n"]), "psnr_fg_db": psnr(total["sse_fg"], total["n_fg"]),
+    return {"psnr_db": psnr_db(total["sse"] / total["n"]),
+            "psnr_fg_db": psnr_db(total["sse_fg"] / max(1, total["n_fg"])),
             "worst_subject_psnr_fg_db": min(finite) if finite else None,
             "psnr_fg_db_per_subject": fg_per_subject,
             "alpha_mae": total["alpha_abs"] / total["n_alpha"],

@@ -5,19 +5,18 @@
     python scripts/make_head_template.py --check          # verify the shipped files equal a fresh generation
 
 Files hold ``vertices`` (V, 3) float32 in world units and ``faces`` (F, 3) int32; the zip entries carry
-a fixed date, so the same mesh gives the same bytes. Writes go to a temporary file, then a rename.
+a fixed date, so the same mesh gives the same bytes. Writes go to a temporary file, fsynced, then a rename.
 """
 from __future__ import annotations
 
 import argparse
 import io
-import os
 import sys
-import tempfile
 import zipfile
 
 import numpy as np
 
+from datagen.files import atomic_write
 from panolam.template import SHIPPED_VERTICES, asset_path, generate_template
 
 ATOL = 1e-5  # world units: float32 field evaluation may differ in the last bits between machines
@@ -38,15 +37,7 @@ def write(n: int) -> None:
     vertices, faces = generate_template(n)
     path = asset_path(n)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(npz_bytes({"vertices": vertices, "faces": faces.astype(np.int32)}))
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
+    atomic_write(path, npz_bytes({"vertices": vertices, "faces": faces.astype(np.int32)}))
     print(f"wrote {path}: {len(vertices)} vertices, {len(faces)} faces, {path.stat().st_size} bytes")
 
 
