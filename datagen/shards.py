@@ -141,6 +141,7 @@ def encode_subject(metadata: dict, rgb: np.ndarray, alpha: np.ndarray, depth: np
 # ----------------------------------------------------------------------------------------------
 # Writing a shard
 
+# Not webdataset's TarWriter: headers can match, but it sorts each sample's fields by name, not encode_subject's order
 class ShardWriter:
     """Writes one shard: members go to a temporary tar; :meth:`commit` publishes tar, truth, sidecar.
 
