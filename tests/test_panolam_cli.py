@@ -143,7 +143,7 @@ def _outputs(root):
     return {root / "head.ply": b"ply", root / "views" / "front.png": b"png", root / "views" / "back.png": b"png2"}
 
 
-def test_outputs_are_all_or_nothing(tmp_path, monkeypatch):
+def test_outputs_are_all_or_nothing(tmp_path):
     write_all(_outputs(tmp_path / "ok"))
     assert sorted(p.name for p in (tmp_path / "ok").rglob("*")) == ["back.png", "front.png", "head.ply", "views"]
     # a path under a regular file: nothing of the set is left
@@ -152,18 +152,22 @@ def test_outputs_are_all_or_nothing(tmp_path, monkeypatch):
     with pytest.raises(cli.UserError, match=f"cannot write {tmp_path / 'file' / 'views' / 'front.png'}"):
         write_all(outputs)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "ok"]
-    # a full disk on the last file: the first ones are removed again
-    import datagen.files as files
-    real = files.open if hasattr(files, "open") else open
 
-    def full_for_back(path, mode="r", *a, **k):
+
+@pytest.mark.parametrize("error", [OSError(errno.ENOSPC, "No space left on device"),
+                                   PermissionError(errno.EACCES, "Permission denied")])
+def test_a_failure_on_the_last_output_is_one_line_and_removes_the_first(error, tmp_path, monkeypatch):
+    """A full disk or a refused permission (as any user, root included) on back.png: nothing is left."""
+    import datagen.files as files
+
+    def refused_for_back(path, mode="r", *a, **k):
         if "back.png" in str(path):
-            raise OSError(errno.ENOSPC, "No space left on device", str(path))
-        return real(path, mode, *a, **k)
-    monkeypatch.setattr(files, "open", full_for_back, raising=False)
-    with pytest.raises(cli.UserError, match="cannot write .*back.png: No space left on device"):
-        write_all(_outputs(tmp_path / "full"))
-    assert not (tmp_path / "full").exists()
+            raise type(error)(error.errno, error.strerror, str(path))
+        return open(path, mode, *a, **k)
+    monkeypatch.setattr(files, "open", refused_for_back, raising=False)
+    with pytest.raises(cli.UserError, match=f"cannot write .*back.png: {error.strerror}"):
+        write_all(_outputs(tmp_path / "out"))
+    assert not (tmp_path / "out").exists()
 
 
 @pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
@@ -177,21 +181,6 @@ def test_read_only_folder_is_one_line(tmp_path):
     finally:
         folder.chmod(0o755)
     assert list(folder.iterdir()) == []
-
-
-def test_permission_denied_on_one_output_is_one_line_and_writes_nothing(tmp_path, monkeypatch):
-    """As any user (root included): the second output is refused, the first is not left behind."""
-    import datagen.files as files
-    real = open
-
-    def denied_for_back(path, mode="r", *a, **k):
-        if "back.png" in str(path):
-            raise PermissionError(errno.EACCES, "Permission denied", str(path))
-        return real(path, mode, *a, **k)
-    monkeypatch.setattr(files, "open", denied_for_back, raising=False)
-    with pytest.raises(cli.UserError, match="cannot write .*back.png: Permission denied"):
-        write_all(_outputs(tmp_path / "denied"))
-    assert not (tmp_path / "denied").exists()
 
 
 @pytest.mark.parametrize("device, message", [("cuda:x", "unknown device 'cuda:x'; use cpu, cuda, cuda:N or auto"),

@@ -402,42 +402,27 @@ class _FullDisk(io.FileIO):
         raise OSError(errno.ENOSPC, "No space left on device")
 
 
-def test_a_full_disk_while_writing_the_checkpoint_is_one_line_and_leaves_no_temporary(curated, tmp_path,
-                                                                                     monkeypatch, capsys):
+@pytest.mark.parametrize("module, name", [("datagen.files", "checkpoint.pt"), ("panolam.train", "train.log")])
+def test_a_full_disk_is_one_line_naming_the_file_and_leaves_no_temporary(curated, tmp_path, monkeypatch, capsys,
+                                                                       module, name):
+    """The checkpoint (written atomically) and the log (appended): each write fails as on a full disk."""
     import builtins
-    import datagen.files as files
+    import importlib
     from panolam.cli import main
     data, manifest = curated
 
     def opener(path, mode="r", *args, **kwargs):
-        if "checkpoint.pt" in str(path) and "w" in mode:
-            return _FullDisk(path, "wb")
+        if name in Path(path).name and mode[0] in "wa":
+            return _FullDisk(path, mode[0] + "b")
         return builtins.open(path, mode, *args, **kwargs)
-    monkeypatch.setattr(files, "open", opener, raising=False)
+    monkeypatch.setattr(importlib.import_module(module), "open", opener, raising=False)
     run = tmp_path / "run"
     code = main(["train", "--data", str(data), "--manifest", str(manifest), "--out", str(run), "--steps", "1",
                  "--views-per-sample", "3", "--render-resolution", "16", "--batch-size", "1", "--no-progress"])
     err = capsys.readouterr().err
-    assert code == 2 and err.strip() == f"panolam train: error: disk full ({run / 'checkpoint.pt'})", err
-    assert sorted(p.name for p in run.iterdir()) == ["tb", "train.log"]  # no checkpoint, no .checkpoint.pt.tmp
-
-
-def test_a_full_disk_while_appending_the_log_names_the_log(curated, tmp_path, monkeypatch, capsys):
-    import builtins
-    import panolam.train as train_module
-    from panolam.cli import main
-    data, manifest = curated
-
-    def opener(path, mode="r", *args, **kwargs):
-        if str(path).endswith("train.log"):
-            return _FullDisk(path, "ab")
-        return builtins.open(path, mode, *args, **kwargs)
-    monkeypatch.setattr(train_module, "open", opener, raising=False)
-    run = tmp_path / "run"
-    code = main(["train", "--data", str(data), "--manifest", str(manifest), "--out", str(run), "--steps", "1",
-                 "--views-per-sample", "3", "--render-resolution", "16", "--batch-size", "1", "--no-progress"])
-    err = capsys.readouterr().err
-    assert code == 2 and err.strip() == f"panolam train: error: disk full ({run / 'train.log'})", err
+    assert code == 2 and err.strip() == f"panolam train: error: disk full ({run / name})", err
+    assert "checkpoint.pt" not in [p.name for p in run.iterdir()]
+    assert not [p.name for p in run.iterdir() if p.name.startswith(".")]  # no .checkpoint.pt.tmp
 
 
 @pytest.fixture
