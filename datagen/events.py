@@ -7,6 +7,11 @@ bad and none otherwise (absent or null is read as none). Other keys are ignored.
 edited in place: undo is an event that cancels the reviewer's latest still-effective verdict (its
 subject and shard name that verdict's). A log can be read back with any JSON-lines reader.
 
+``skip`` means "decide later": it is kept (and undone) like any verdict, but a subject whose
+verdict is skip is not reviewed. :data:`DECISIONS` (good, bad) are what count as reviewed, the same
+for the review window (its reviewed count, ``u``, where a session resumes) and for ``compile`` /
+``stats`` (a skipped subject is unreviewed there); :func:`is_decision` is that one test.
+
 :func:`parse_event` is the one check of that format. Every reader (the review window and
 ``compile``/``stats``) goes through :func:`read_log`, so they count the same events and report the
 same problems, each as ``<file>:<line>: <what>``: a line that is not a valid event (a write cut
@@ -27,6 +32,7 @@ from .errors import UserError
 
 ACTIONS = ("good", "bad", "skip", "undo")
 VERDICTS = ("good", "bad", "skip")
+DECISIONS = ("good", "bad")   # the verdicts that make a subject reviewed; skip is "decide later"
 REASONS = ("multiple_faces", "broken_back", "artifacts", "blur", "other")
 REVIEWER_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
@@ -186,6 +192,11 @@ class Verdicts:
             self.current[gone.subject] = earlier
 
 
+def is_decision(event: Event | None) -> bool:
+    """Whether a subject with this effective verdict (None: none) counts as reviewed."""
+    return event is not None and event.action in DECISIONS
+
+
 def verdicts(events: list[Event]) -> dict[str, Event]:
     """A reviewer's effective verdict per subject (good / bad / skip) after applying undos."""
     return dict(Verdicts(events).current)
@@ -198,6 +209,8 @@ class EventLog:
         self.reviewer = check_reviewer(reviewer)
         self.path = log_path(labels_dir, reviewer)
         self._created = not self.path.exists()
+        # the folders this log makes, deepest first, so that a session that writes nothing leaves none
+        self._made_dirs = [d for d in (self.path.parent, *self.path.parent.parents) if not d.exists()]
         problem = log_file_problem(self.path) if self.path.exists() else None
         if problem:
             raise UserError(problem)
@@ -251,7 +264,13 @@ class EventLog:
         return self._verdicts.current
 
     def close(self, discard_if_empty: bool = False) -> None:
-        """Close the log; ``discard_if_empty`` removes it again when this session created it and wrote nothing."""
+        """Close the log; ``discard_if_empty`` removes it again when this session created it and wrote
+        nothing, and the folders it made for it when they are still empty."""
         self._file.close()
         if discard_if_empty and self._created and self.path.stat().st_size == 0:
             self.path.unlink()
+            for d in self._made_dirs:
+                try:
+                    d.rmdir()
+                except OSError:  # not empty: something else was put there meanwhile
+                    break

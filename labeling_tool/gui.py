@@ -8,18 +8,23 @@ occluding surface built from every view's depth and mask (so a face painted on t
 is seen only from behind), framed on the head.
 
 Every verdict is appended to the reviewer's event log (flushed and fsynced) as it is made, so
-closing or killing the window loses nothing; reopening resumes at the first subject without a
-verdict. A verdict equal to the saved one writes nothing.
+closing or killing the window loses nothing; reopening resumes at the first subject not reviewed.
+A verdict equal to the saved one writes nothing. Reviewed means good or bad: a skip is "decide
+later", so a skipped subject stays unreviewed (in the counts, for ``u`` and where a session
+resumes), as ``compile`` counts it.
 
 Triage commit (Return) writes exactly: the changes made on that page (a cell marked bad with a
 reason, or a saved verdict flipped to good) and good for cells that had no verdict yet; cells with
-a saved verdict that were not touched keep it. A page without anything to write writes nothing and
-says so. Changes wait, per cell, until their page is committed; pages can be left and revisited
-without committing, and quitting with changes not committed asks for a second Escape.
+a saved verdict that were not touched keep it (a skipped one stays skipped, for later). A page
+without anything to write writes nothing and says so. Changes wait, per cell, until their page is
+committed; pages can be left and revisited without committing, and quitting with changes not
+committed asks for a second Escape.
 
-The grid is drawn as one image at the window's pixel size (composed with Pillow, the next
-subjects and the next triage page in a background thread), so a key costs one texture upload
-and one frame. The window runs its own event loop so that the background thread gets the
+The grid is drawn as one image at the window's pixel size (composed with Pillow; the next subjects
+and the next triage pages, cells and all, in a background thread), shown as a texture that is
+uploaded once per image. A key costs at most one texture upload, the heads-up text (its lines are
+cached) and one frame; a window on a display draws the frame straight into its back buffer
+(colour only). The window runs its own event loop so that the background thread gets the
 interpreter while the window waits for keys.
 """
 from __future__ import annotations
@@ -43,13 +48,13 @@ from vtkmodules.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray,
 from vtkmodules.vtkCommonCore import vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkImageData, vtkPolyData
 from vtkmodules.vtkInteractionStyle import vtkInteractorStyleTrackballCamera, vtkInteractorStyleUser
-from vtkmodules.vtkRenderingCore import (vtkActor, vtkActor2D, vtkImageMapper, vtkPolyDataMapper, vtkPolyDataMapper2D,
-                                         vtkRenderer, vtkRenderWindow, vtkRenderWindowInteractor,
+from vtkmodules.vtkRenderingCore import (vtkActor, vtkActor2D, vtkPolyDataMapper, vtkPolyDataMapper2D, vtkRenderer,
+                                         vtkRenderWindow, vtkRenderWindowInteractor, vtkTexture, vtkTexturedActor2D,
                                          vtkWindowToImageFilter)
 from vtkmodules.vtkRenderingUI import vtkGenericRenderWindowInteractor
 
 from datagen.errors import DatasetError, UserError
-from datagen.events import REASONS, EventLog
+from datagen.events import REASONS, EventLog, is_decision
 from datagen.shards import decode_exr, decode_png, read_sidecar, tar_path
 
 # imported for what it registers: the OpenGL window behind vtkRenderWindow (vtkRenderingUI registers
@@ -81,9 +86,9 @@ HELP = [  # (keys, what they do); a row without a description is a heading
     ("REVIEW: one subject, all its views", None),
     ("g", "good"),
     ("1 2 3 4 5", "bad: 1 multiple faces, 2 broken back, 3 artifacts, 4 blur, 5 other"),
-    ("s", "skip (decide later)"),
+    ("s", "skip: decide later (the subject stays unreviewed; u comes back to it)"),
     ("Right / n,  Left / p", "next subject, previous subject"),
-    ("u", "next subject without a verdict"),
+    ("u", "next unreviewed subject (no verdict yet, or skipped)"),
     ("z", "undo the latest verdict (written as an undo event)"),
     ("v", "3D surface from the views' depth and masks: drag turns it, wheel zooms, r re-frames"),
     ("t", "triage mode"),
@@ -149,9 +154,16 @@ class XDisplay:
             getattr(self.lib, fn).argtypes = [ctypes.c_void_p]
         for fn in ("XDisplayWidth", "XDisplayHeight"):
             getattr(self.lib, fn).argtypes = [ctypes.c_void_p, ctypes.c_int]
+        self.lib.XQueryExtension.argtypes = [ctypes.c_void_p, ctypes.c_char_p] + [ctypes.POINTER(ctypes.c_int)] * 3
         self.handle = self.lib.XOpenDisplay(name.encode())
         if not self.handle:
             raise UserError(f"cannot open the X display {name!r} (is the X server or Xvfb running?); "
+                            "use --off-screen for a scripted session")
+        opcode, event, error = ctypes.c_int(), ctypes.c_int(), ctypes.c_int()
+        if not self.lib.XQueryExtension(self.handle, b"GLX", ctypes.byref(opcode), ctypes.byref(event),
+                                        ctypes.byref(error)):
+            self.close()  # said here in one line, before VTK tries (and warns) and before anything is created
+            raise UserError(f"the X display {name!r} has no OpenGL (GLX), so VTK cannot open a window on it; "
                             "use --off-screen for a scripted session")
 
     def screen_size(self) -> tuple[int, int] | None:
@@ -201,6 +213,11 @@ class Window:
         self.render_window.SetSize(*size)
         self.render_window.SetWindowName(title)
         self.render_window.SetMultiSamples(0)  # multisampling costs software OpenGL several frames' time
+        if not off_screen and hasattr(self.render_window, "SetFrameBlitModeToBlitToCurrent"):
+            # the frame goes from VTK's framebuffer straight to the window's back buffer, colour only: the
+            # default also copies colour and depth through a second framebuffer, which doubles the cost
+            # of every frame under software OpenGL (Xvfb, remote desktops)
+            self.render_window.SetFrameBlitModeToBlitToCurrent()
         self.render_window.SetOffScreenRendering(bool(off_screen))
         self.renderer = vtkRenderer()
         self.renderer.SetBackground(*[c / 255 for c in BACKGROUND])
@@ -223,9 +240,8 @@ class Window:
         self.render_window.Render()
 
     def show(self):
-        """Map the window and draw it."""
+        """Get the window ready for events (it is mapped and drawn by the first frame rendered)."""
         self.interactor.Initialize()
-        self.render_window.Render()
 
     def screenshot(self) -> np.ndarray:
         """The window's pixels (H, W, 3) uint8, top row first."""
@@ -439,9 +455,24 @@ def fit_text(text: str, f, room: float) -> str:
     """``text`` cut (ending in '~') to fit ``room`` pixels in font ``f``."""
     if f.getlength(text) <= room:
         return text
-    while text and f.getlength(text + "~") > room:
-        text = text[:-1]
-    return text + "~"
+    lo, hi = 0, len(text)  # the longest prefix that fits with its '~' (a binary search: few measurements)
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if f.getlength(text[:mid] + "~") <= room:
+            lo = mid
+        else:
+            hi = mid - 1
+    return text[:lo] + "~"
+
+
+@lru_cache(maxsize=512)
+def text_line(text: str, color: tuple, size: int, width: int) -> Image.Image:
+    """One line of the heads-up block as an image ``width`` px wide (cut to fit), on the background.
+    Cached: most lines (the keys, the notice, the detail) come back key after key."""
+    img = Image.new("RGB", (width, size + 6), BACKGROUND)
+    f = font(size)
+    ImageDraw.Draw(img).text((0, 0), fit_text(text, f, width), fill=color, font=f)
+    return img
 
 
 def hud_height(window_height: int) -> int:
@@ -452,10 +483,8 @@ def hud_height(window_height: int) -> int:
 def draw_hud(width: int, height: int, lines, size: int) -> Image.Image:
     """The heads-up block: [(text, colour), ...] one per line, on the window's background."""
     img = Image.new("RGB", (width, height), BACKGROUND)
-    draw = ImageDraw.Draw(img)
-    f = font(size)
     for k, (text, color) in enumerate(lines):
-        draw.text((8, 5 + k * (size + 6)), fit_text(text, f, width - 16), fill=color, font=f)
+        img.paste(text_line(text, tuple(color), size, width - 16), (8, 5 + k * (size + 6)))
     return img
 
 
@@ -480,17 +509,40 @@ def draw_help(size: int) -> Image.Image:
 
 
 class ImageLayer:
-    """An RGB image (rows bottom-up) drawn at a place in the window, in display pixels."""
+    """An RGB image (rows bottom-up) drawn at a place in the window, in display pixels.
+
+    The image is a texture on a rectangle of its own size (nearest texel: pixel for pixel). The
+    texture is uploaded once per image: a frame that does not change the image (another layer
+    changed, the help panel was toggled) draws it from the texture already there. (vtkImageMapper,
+    by contrast, converts and uploads its whole image at every frame.)
+    """
 
     def __init__(self, renderer):
-        self.mapper = vtkImageMapper()
-        self.mapper.SetColorWindow(255.0)
-        self.mapper.SetColorLevel(127.5)
-        self.actor = vtkActor2D()
+        self.texture = vtkTexture()
+        self.texture.InterpolateOff()
+        self.texture.RepeatOff()
+        self.texture.EdgeClampOn()
+        self.texture.SetColorModeToDirectScalars()
+        self._corners = vtkPoints()
+        for _ in range(4):
+            self._corners.InsertNextPoint(0, 0, 0)
+        tcoords = numpy_to_vtk(np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float32), deep=True)
+        quad = vtkPolyData()
+        quad.SetPoints(self._corners)
+        cells = vtkCellArray()
+        cells.InsertNextCell(4, [0, 1, 2, 3])
+        quad.SetPolys(cells)
+        quad.GetPointData().SetTCoords(tcoords)
+        self._quad = quad
+        self.mapper = vtkPolyDataMapper2D()
+        self.mapper.SetInputData(quad)
+        self.actor = vtkTexturedActor2D()
         self.actor.SetMapper(self.mapper)
+        self.actor.SetTexture(self.texture)
         self.actor.SetVisibility(False)
         renderer.AddViewProp(self.actor)
         self.pixels = None  # kept alive: VTK reads this memory
+        self.uploads = 0    # images handed to the texture (each is uploaded once, at the next frame)
 
     def show(self, pixels: np.ndarray, x: int, y_top: int, window_height: int):
         """Show ``pixels`` with its top-left corner at (x, y_top from the window's top)."""
@@ -499,8 +551,14 @@ class ImageLayer:
             image = vtkImageData()
             image.SetDimensions(w, h, 1)
             image.GetPointData().SetScalars(numpy_to_vtk(pixels.reshape(-1, 3), deep=False))
+            if self.pixels is None or self.pixels.shape != pixels.shape:
+                for k, (px, py) in enumerate(((0, 0), (w, 0), (w, h), (0, h))):
+                    self._corners.SetPoint(k, px, py, 0)
+                self._corners.Modified()
+                self._quad.Modified()
             self.pixels = pixels
-            self.mapper.SetInputData(image)
+            self.texture.SetInputData(image)
+            self.uploads += 1
         self.actor.SetPosition(x, window_height - y_top - h)
         self.actor.SetVisibility(True)
 
@@ -536,15 +594,20 @@ def view_points(cam2world: np.ndarray, K: np.ndarray, resolution: int, rows: np.
     return cam2world[:3, 3] + depth[..., None] * d
 
 
-def surface_mesh(views, max_grid: int = 80, slope: float = 5.0, min_facing: float = 0.2):
+def surface_mesh(views, max_grid: int = 80, slope: float = 2.0, min_facing: float = 0.2):
     """A triangle surface coloured by the images, from each view's depth and mask: (points (N, 3)
     float32, triangles (M, 3) int64, colours (N, 3) uint8), or None.
 
     ``views``: [(cam2world 4x4, K 3x3, rgb (h, w, 3) at any size, alpha (R, R), depth (R, R)), ...].
     Each view is sampled on a grid of at most ``max_grid`` pixels a side, away from its silhouette
-    (whose depth and colour blend with the background); neighbouring samples become two triangles
-    unless their depths differ by more than ``slope`` times their spacing (an occlusion edge) or the
-    triangle faces the camera at a grazing angle (|cos| < ``min_facing``; another view sees it better).
+    (whose depth and colour blend with the background); each cell of four neighbouring samples
+    becomes two triangles. Both are dropped when the depths of the cell's corners differ by more than
+    ``slope`` times the cell's size (the spacing of its samples at its depth): that is a depth
+    discontinuity (glasses in front of the eyes, the side of the nose, an ear), not a surface, and
+    meshing it stretches triangles across the gap, smeared with both sides' colours (the spikes
+    around glasses, eyes and nose of a slope of 5, which let a jump of 5 cells through). A surface
+    steeper than ~63 degrees (slope 2) is left to the views that see it less obliquely (32 views
+    around the head), as are triangles facing the camera at a grazing angle (|cos| < ``min_facing``).
     The surfaces of all views occlude each other, so what is hidden from a direction stays hidden.
     None when no view has any surface. Plain arrays: safe to make in the background thread.
     """
@@ -571,8 +634,8 @@ def surface_mesh(views, max_grid: int = 80, slope: float = 5.0, min_facing: floa
         number[valid] = np.arange(valid.sum())
         quad = np.stack([number[:-1, :-1], number[:-1, 1:], number[1:, :-1], number[1:, 1:]])
         dq = np.stack([d[:-1, :-1], d[:-1, 1:], d[1:, :-1], d[1:, 1:]])
-        spacing = dq.mean(axis=0) * step / (K[0, 0] * R)
-        keep = np.all(quad >= 0, axis=0) & (dq.max(axis=0) - dq.min(axis=0) <= slope * spacing)
+        size = dq.mean(axis=0) * step / (K[0, 0] * R)   # the cell's side in world units, at its depth
+        keep = np.all(quad >= 0, axis=0) & (dq.max(axis=0) - dq.min(axis=0) <= slope * size)
         a, b, c, e = quad[:, keep]
         tris = np.concatenate([np.stack([a, c, b], 1), np.stack([b, c, e], 1)])
         p = pts[valid]
@@ -684,6 +747,17 @@ class Prefetcher:
 
 
 @dataclass
+class TriagePage:
+    """One triage page drawn: its thumbnails [(image or None, error or None)], the canvas (PIL) and
+    what each cell shows on it [(lines, frame)]; ``pixels``: the canvas in VTK row order, once made."""
+
+    thumbs: list
+    canvas: Image.Image
+    states: list
+    pixels: np.ndarray | None = None
+
+
+@dataclass
 class ReviewFrame:
     """One subject drawn for review: the canvas (VTK row order), its layout, its views at cell size,
     its metadata (None, with the error, when it cannot be read)."""
@@ -712,7 +786,9 @@ class ReviewApp:
         self.dataset, self.queue, self.columns, self.triage_shape = dataset, queue, columns, tuple(triage_shape)
         self.index = {q.subject: i for i, q in enumerate(queue)}
         self.log = EventLog(labels_dir, reviewer)
-        self.done = sum(1 for s in self.log.verdicts() if s in self.index)
+        # reviewed: good or bad; a skip is "decide later" (not reviewed, here as in compile)
+        self.done = sum(1 for s, e in self.log.verdicts().items() if s in self.index and is_decision(e))
+        self.skipped = sum(1 for s, e in self.log.verdicts().items() if s in self.index and e.action == "skip")
         self.reader = SubjectReader(dataset)
         self.frames = Prefetcher(size=6)        # review canvases and 3D surfaces
         self.thumbs = Prefetcher(size=4)        # triage pages' thumbnails
@@ -736,10 +812,14 @@ class ReviewApp:
         self.triage_yaw, self.triage_page, self.triage_cursor = 0, 0, 0
         self.pending: dict[str, tuple[str, tuple]] = {}   # triage changes not committed yet
         self._page_thumbs: list = []
-        self._canvas_image = None    # the triage page being drawn (PIL)
+        self._page = None            # the triage page on screen (TriagePage)
+        self._canvas_image = None    # its canvas (PIL)
         self._layout = None
         self._current_frame = None
         self._running = False
+        # a window on a display draws its first frame in run(), once, with everything in place (each
+        # frame before it would cost the start-up a full frame of software OpenGL)
+        self._deferred = not off_screen
         self._make_actors()
         self._bind_keys()
         if start_in_triage:
@@ -753,12 +833,21 @@ class ReviewApp:
         return self.queue[self.pos]
 
     def first_unreviewed(self, start: int = 0) -> int:
+        """The first subject from ``start`` on (wrapping around) that is not reviewed: no verdict, or skip."""
         seen = self.log.verdicts()
         for k in range(len(self.queue)):
             i = (start + k) % len(self.queue)
-            if self.queue[i].subject not in seen:
+            if not is_decision(seen.get(self.queue[i].subject)):
                 return i
         return min(start, len(self.queue) - 1)
+
+    def _count(self, subject: str, before) -> None:
+        """Keep the reviewed and skipped counts up to date after ``subject``'s verdict changed from ``before``."""
+        if subject in self.index:
+            after = self.log.verdict(subject)
+            self.done += is_decision(after) - is_decision(before)
+            self.skipped += (after is not None and after.action == "skip") - (before is not None and
+                                                                              before.action == "skip")
 
     def _record(self, item: QueueItem, action: str, reasons=()) -> bool:
         """Write a verdict unless it is the saved one; True when an event was written."""
@@ -766,7 +855,7 @@ class ReviewApp:
         if saved is not None and (saved.action, saved.reasons) == (action, tuple(reasons)):
             return False
         self.log.append(item.subject, item.shard, action, reasons)
-        self.done += saved is None
+        self._count(item.subject, saved)
         return True
 
     # -- actors ---------------------------------------------------------------------------------------
@@ -793,6 +882,7 @@ class ReviewApp:
         self._hud = ImageLayer(renderer)
         self._help = ImageLayer(renderer)
         self._help_size = None
+        self._hud_key = self._hud_pixels = None
         self._surface = None
 
     def window_size(self) -> tuple[int, int]:
@@ -813,7 +903,11 @@ class ReviewApp:
         self.hud_lines = [(status, COLORS["text"]), (detail, COLORS["dim"]), (message, NOTICE_COLORS[kind]),
                           (keys, (150, 150, 150))]
         size = text_size(h)
-        self._hud.show(to_vtk_order(draw_hud(w, hud_height(h), self.hud_lines, size)), 0, 0, h)
+        key = (w, h, tuple(self.hud_lines))
+        if key != self._hud_key:  # the same text (the help toggled, a move in 3D) is not drawn or uploaded again
+            self._hud_pixels = to_vtk_order(draw_hud(w, hud_height(h), self.hud_lines, size))
+            self._hud_key = key
+        self._hud.show(self._hud_pixels, 0, 0, h)
         if self.show_help and self._help_size != (w, h):
             size = max(10, min(22, h // 48))
             panel = draw_help(size)
@@ -829,7 +923,8 @@ class ReviewApp:
             self._help.hide()
 
     def _render(self):
-        self.window.render()
+        if not self._deferred:
+            self.window.render()
 
     # -- keys ---------------------------------------------------------------------------------------
     def _bind_keys(self):
@@ -975,7 +1070,7 @@ class ReviewApp:
             self.notice = ("warn", "nothing to undo")
             self.refresh()
             return
-        self.done -= self.log.verdict(target.subject) is None and target.subject in self.index
+        self._count(target.subject, target)  # the undone verdict was the subject's effective one
         now = self.log.verdict(target.subject)
         now_text = verdict_text(now.action, now.reasons) if now else "none"
         self.notice = ("undo", f"undone: {target.subject} {verdict_text(target.action, target.reasons)}; "
@@ -990,7 +1085,7 @@ class ReviewApp:
                 self.triage_page = page
                 self.show_triage_page()
             else:
-                self._draw_triage()
+                self._draw_triage(cells=[self.triage_cursor])  # the cell shows its verdict as it is now
         else:
             self.goto(self.index[target.subject])
 
@@ -1054,14 +1149,16 @@ class ReviewApp:
         v = self.log.verdict(it.subject)
         pending = f"   ({len(self.pending)} triage change(s) not committed)" if self.pending else ""
         view = "   3D view" if self.mode == "3d" else ""
+        skipped = f" ({self.skipped} skipped)" if self.skipped else ""
         status = (f"{it.subject} ({it.shard})   {self.pos + 1}/{len(self.queue)}   reviewed {self.done}, "
-                  f"left {len(self.queue) - self.done}{pending}{view}")
+                  f"left {len(self.queue) - self.done}{skipped}{pending}{view}")
         score = f"   pre-flag score {it.score:.2f}" if it.score is not None else ""
         detail = (f"verdict: {verdict_text(v.action if v else None, v.reasons if v else ())}{score}"
                   f"   flags: {it.flags_text() or 'none'}")
         return status, detail
 
-    def _on_resize(self):
+    def _on_resize(self) -> bool:
+        """Lay the window out again when its size changed; True when it did (and was drawn)."""
         if self._layout is not None and self.window_size() != (self._layout.width, self._layout.height):
             if self.mode == "review":
                 self.show_subject()
@@ -1069,6 +1166,8 @@ class ReviewApp:
                 self.show_triage_page()
             else:
                 self.refresh()
+            return True
+        return False
 
     # -- 3D view ----------------------------------------------------------------------------------------
     def toggle_3d(self):
@@ -1179,21 +1278,42 @@ class ReviewApp:
                 out.append((None, str(e)))
         return out
 
-    def _thumbs_key(self, page: int, layout: Layout):
-        return page, self.triage_yaw, layout.cell
+    def _make_page(self, page: int, yaw: float, layout: Layout) -> "TriagePage":
+        """A triage page drawn whole: its thumbnails and every cell as it stands now (also in the
+        background; the cells whose state changes before it is shown are drawn again then)."""
+        thumbs = self._make_thumbs(page, yaw, layout.cell)
+        canvas = blank_canvas(layout)
+        states = []
+        for i, item in enumerate(self.page_items(page)):
+            state = self._cell_drawing(item, thumbs[i][1])
+            draw_cell(canvas, layout, i, thumbs[i][0], *state)
+            states.append(state)
+        return TriagePage(thumbs, canvas, states, to_vtk_order(canvas))
+
+    def _page_key(self, page: int, layout: Layout):
+        return page, self.triage_yaw, layout
 
     def show_triage_page(self):
         layout = self._triage_layout()
         self._layout = layout
         yaw = TRIAGE_YAWS[self.triage_yaw]
         page = self.triage_page
-        self._page_thumbs = self.thumbs.get(self._thumbs_key(page, layout),
-                                            lambda: self._make_thumbs(page, yaw, layout.cell))
+        self._page = self.thumbs.get(self._page_key(page, layout), lambda: self._make_page(page, yaw, layout))
+        self._page_thumbs = self._page.thumbs
+        self._canvas_image = self._page.canvas
         self.triage_cursor = min(self.triage_cursor, len(self.page_items()) - 1)
-        self._draw_triage(full=True)
+        # only the cells that changed since the page was drawn (a verdict undone, a change made on it)
+        self._draw_triage(cells=range(len(self.page_items())), shown=False)
         ahead = [p for p in (page + 1, page - 1) if 0 <= p < self.n_pages]
-        self.thumbs.want([(self._thumbs_key(p, layout), (lambda p=p: self._make_thumbs(p, yaw, layout.cell)))
+        self.thumbs.want([(self._page_key(p, layout), (lambda p=p: self._make_page(p, yaw, layout)))
                           for p in ahead])
+
+    def _cell_drawing(self, item: QueueItem, error: str | None):
+        """What a triage cell shows: (lines, frame), with a thumbnail's error in place of the pre-flags."""
+        lines, frame = self.cell_state(item)
+        if error:
+            lines = [lines[0], (error[-60:], COLORS["bad"])]
+        return lines, frame
 
     def cell_state(self, item: QueueItem):
         """(lines of text, frame) of a triage cell: saved verdict, change not committed, pre-flags."""
@@ -1212,21 +1332,25 @@ class ReviewApp:
         bottom = (f"{item.flags_text() or 'no flag'}  flip={REASON_SHORT[item.default_reason]}", COLORS["dim"])
         return [top, bottom], frame
 
-    def _draw_triage(self, full: bool = False, cells=None):
-        """Draw the triage page (every cell, or only ``cells``) and the heads-up text."""
+    def _draw_triage(self, cells=(), shown: bool = True):
+        """Draw the page's ``cells`` whose state changed (all of them when the page is not on screen yet,
+        ``shown`` False), then the cursor and the heads-up text."""
         layout = self._layout
         items = self.page_items()
-        if full or self._canvas_image is None:
-            self._canvas_image = blank_canvas(layout)
-            cells = range(len(items))
-        for i in cells or ():
-            img, error = self._page_thumbs[i]
-            lines, frame = self.cell_state(items[i])
-            if error:
-                lines = [lines[0], (error[-60:], COLORS["bad"])]
-            draw_cell(self._canvas_image, layout, i, img, lines, frame)
-        if full or cells:
-            self._show_canvas(to_vtk_order(self._canvas_image))
+        page = self._page
+        changed = False
+        for i in cells:
+            img, error = page.thumbs[i]
+            state = self._cell_drawing(items[i], error)
+            if state != page.states[i]:
+                draw_cell(page.canvas, layout, i, img, *state)
+                page.states[i] = state
+                page.pixels = None
+                changed = True
+        if page.pixels is None:
+            page.pixels = to_vtk_order(page.canvas)
+        if changed or not shown:
+            self._show_canvas(page.pixels)
         sx, sy = layout.slot(self.triage_cursor)
         x0, y0, x1, y1 = sx + 2, sy - 2, sx + layout.slot_w - 3, sy + layout.slot_h - 3
         h = layout.height
@@ -1235,12 +1359,14 @@ class ReviewApp:
         self._cursor_points.Modified()
         self._cursor.SetVisibility(True)
         here = sum(1 for it in items if it.subject in self.pending)
-        reviewed = sum(1 for it in items if self.log.verdict(it.subject) is not None)
+        reviewed = sum(1 for it in items if is_decision(self.log.verdict(it.subject)))
+        skipped = sum(1 for it in items if (v := self.log.verdict(it.subject)) is not None and v.action == "skip")
         elsewhere = len(self.pending) - here
         first = self.triage_page * self.page_size + 1
         cur = items[self.triage_cursor]
         status = (f"TRIAGE page {self.triage_page + 1}/{self.n_pages} (subjects {first}-{first + len(items) - 1}), "
-                  f"view yaw {TRIAGE_YAWS[self.triage_yaw]:.0f}   here: {reviewed} with a verdict, {here} changed"
+                  f"view yaw {TRIAGE_YAWS[self.triage_yaw]:.0f}   here: {reviewed} reviewed, "
+                  f"{f'{skipped} skipped, ' if skipped else ''}{here} changed"
                   f"{f', {elsewhere} changed on other pages' if elsewhere else ''}   "
                   f"reviewed {self.done}/{len(self.queue)}")
         saved, change, flip = self.log.verdict(cur.subject), self.pending.get(cur.subject), self._flip_change(cur)
@@ -1313,15 +1439,18 @@ class ReviewApp:
         if self.mode != "triage":
             return
         page = self.triage_page + 1
-        writes, fresh = [], 0
+        writes, before, skipped = [], {}, 0
         for item in self.page_items():
             saved = self.log.verdict(item.subject)
             action, reasons = self.pending.pop(item.subject, None) or (("good", ()) if saved is None else (None, ()))
             if action is not None and (saved is None or (saved.action, saved.reasons) != (action, reasons)):
                 writes.append((item.subject, item.shard, action, reasons))
-                fresh += saved is None
+                before[item.subject] = saved
+            elif saved is not None and saved.action == "skip":
+                skipped += 1  # decide later: a commit leaves it for the reviewer, unreviewed
         self.log.append_all(writes)  # one fsync for the page
-        self.done += fresh
+        for subject, saved in before.items():
+            self._count(subject, saved)
         bad = sum(1 for w in writes if w[2] == "bad")
         good = len(writes) - bad
         if not bad and not good:
@@ -1329,16 +1458,17 @@ class ReviewApp:
                                    "changed); nothing written")
             self._draw_triage()
             return
-        kept = len(self.page_items()) - bad - good
+        kept = len(self.page_items()) - bad - good - skipped
         self.notice = ("saved", f"committed page {page}: {bad} bad, {good} good written"
-                                f"{f', {kept} kept their saved verdict' if kept else ''}")
+                                f"{f', {kept} kept their saved verdict' if kept else ''}"
+                                f"{f', {skipped} skipped left unreviewed (u finds them)' if skipped else ''}")
         if self.triage_page + 1 < self.n_pages:
             self.triage_page += 1
             self.triage_cursor = 0
             self.show_triage_page()
         else:
             self.notice = ("saved", self.notice[1] + " (last page)")
-            self._draw_triage(full=True)
+            self._draw_triage(cells=range(len(self.page_items())))
 
     def _on_click(self):
         if self.mode != "triage":
@@ -1362,8 +1492,9 @@ class ReviewApp:
         """Open the window and hand control to the reviewer until the window is closed or Escape."""
         self.window.show()
         self._set_style("3d" if self.mode == "3d" else "grid")
-        self._on_resize()
-        self.refresh()
+        self._deferred = False
+        if not self._on_resize():
+            self.refresh()      # the first frame
         fd = self._x_connection()
         self._running = True
         while self._running:

@@ -16,7 +16,7 @@ from datagen.preflags import is_stale, read_preflags
 from datagen.shards import dumps, index_sha256, read_index, shard_index, tar_path
 from datagen.verify import check_shards
 
-from datagen.events import read_logs, verdicts
+from datagen.events import is_decision, read_logs, verdicts
 
 POLICIES = ("any-bad", "majority")
 UNREVIEWED = ("accept", "reject", "reject-flagged")
@@ -66,7 +66,8 @@ def compile_manifest(dataset, labels_dir, policy: str = "any-bad", unreviewed: s
                         + "; its subjects cannot be vouched for (pass --skip-incomplete to reject them)")
     logs, problems = read_logs(labels_dir)
     flagged = flagged_subjects(dataset, required=unreviewed == "reject-flagged")
-    per_reviewer = {r: {s: (e.action, e.reasons) for s, e in verdicts(ev).items() if e.action in ("good", "bad")}
+    # a skip is "decide later": the subject counts as unreviewed, as in the review window
+    per_reviewer = {r: {s: (e.action, e.reasons) for s, e in verdicts(ev).items() if is_decision(e)}
                     for r, ev in logs.items()}
     known = {s for shard in index["shards"] for s in shard["subjects"]}
     strangers = sorted({s for v in per_reviewer.values() for s in v} - known)
@@ -189,7 +190,7 @@ def review_stats(dataset, labels_dir) -> dict:
     """Counts per reason and per reviewer, and agreement between each pair of reviewers."""
     read_index(dataset)
     logs, problems = read_logs(labels_dir)
-    per = {r: {s: e for s, e in verdicts(ev).items() if e.action in ("good", "bad")} for r, ev in logs.items()}
+    per = {r: {s: e for s, e in verdicts(ev).items() if is_decision(e)} for r, ev in logs.items()}
     reasons: dict[str, int] = {}
     reviewers = {}
     for r, v in per.items():

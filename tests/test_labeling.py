@@ -122,10 +122,16 @@ def test_triage_marks_and_commits_a_page(app_factory, tmp_path):
 def test_reopening_resumes_where_the_reviewer_left_off(app_factory, tmp_path):
     app = app_factory()
     app.press("g")
-    app.press("s")
+    app.press("g")
+    app.press("s")          # subject 2: decide later
     app.close()
     again = app_factory()
-    assert again.pos == 2
+    assert again.pos == 2   # the skipped subject is not reviewed: the session resumes there
+    again.press("s")        # skipped again (nothing written) ...
+    again.close()
+    assert app_factory().pos == 2
+    events, _ = read_log(tmp_path / "labels" / "alice.jsonl")
+    assert [e.action for e in events] == ["good", "good", "skip"]
 
 
 def test_kill_9_mid_session_loses_and_duplicates_nothing(tiny_dataset, tmp_path):

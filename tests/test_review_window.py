@@ -17,11 +17,18 @@ import pytest
 
 pytest.importorskip("vtkmodules", reason="the review window needs VTK")
 
+from PIL import Image, ImageDraw, ImageFont  # noqa: E402
+
 from datagen.cameras import intrinsics, look_at, rays  # noqa: E402
+from datagen.errors import UserError  # noqa: E402
+from datagen.files import atomic_write  # noqa: E402
+from datagen.pipeline import JobSpec, make_index, software_info  # noqa: E402
+from datagen.shards import INDEX_NAME, ShardWriter, dumps, iter_tar_samples, read_index, subject_id  # noqa: E402
+from labeling_tool import gui  # noqa: E402
 from labeling_tool.cli import build_queue, main as label_main  # noqa: E402
 from datagen.events import read_log  # noqa: E402
-from labeling_tool.gui import (BACKGROUND, FLAG_REASON, HELP, Layout, QueueItem, ReviewApp, Window,  # noqa: E402
-                               fit_window, polydata, surface_actor, surface_mesh, view_points)
+from labeling_tool.gui import (BACKGROUND, COLORS, FLAG_REASON, HELP, Layout, QueueItem, ReviewApp,  # noqa: E402
+                               Window, fit_window, polydata, surface_actor, surface_mesh, view_points)
 from labeling_tool.manifest import compile_manifest  # noqa: E402
 from labeling_tool.preflags import DETECTOR_NAMES  # noqa: E402
 
@@ -114,6 +121,38 @@ def test_quitting_with_changes_not_committed_asks_twice(make_app, tmp_path):
     assert app.closed and written(tmp_path) == []
 
 
+def test_a_skip_is_decided_later_in_review_and_compile_alike(make_app, tiny_dataset, tmp_path):
+    """s means "decide later": not reviewed in the window (counts, u, where a session resumes, a triage
+    commit leaves it) nor in compile (unreviewed there)."""
+    app = make_app()
+    press(app, "s g")                       # 0 skipped, 1 good; on subject 2
+    assert (app.pos, app.done, app.skipped) == (2, 1, 1)
+    assert "reviewed 1, left 2 (1 skipped)" in app.hud_lines[0][0]
+    press(app, "Right u")                   # u comes back to the skipped subject
+    assert app.pos == 0
+    m = compile_manifest(tiny_dataset, tmp_path / "labels")
+    counts = m["header"]["counts"]
+    assert counts["reviewed"] == 1 and counts["unreviewed"] == 2
+    assert {r["subject"]: r["reviewers"] for r in m["subjects"]}[S0] == []
+    strict = compile_manifest(tiny_dataset, tmp_path / "labels", unreviewed="reject")
+    assert {r["subject"]: r["verdict"] for r in strict["subjects"]} == {S0: "rejected", S1: "accepted",
+                                                                       S2: "rejected"}
+    app.close()
+    again = make_app()                      # a new session resumes at the skipped subject
+    assert (again.pos, again.done, again.skipped) == (0, 1, 1)
+    press(again, "t Return")                # a commit: good for the new cell, the skipped one waits
+    assert written(tmp_path)[2:] == [(S2, "good", ())] and again.log.verdict(S0).action == "skip"
+    assert "1 skipped left unreviewed" in again.notice[1] and (again.done, again.skipped) == (2, 1)
+    press(again, "t")
+    assert again.pos == 0
+    press(again, "g")                       # decided: reviewed now
+    assert (again.done, again.skipped) == (3, 0)
+    press(again, "z")                       # undone: skipped again, unreviewed again
+    assert (again.done, again.skipped) == (2, 1) and again.log.verdict(S0).action == "skip"
+    press(again, "u")
+    assert again.pos == 0
+
+
 # ------------------------------------------------------------------------------------------------
 # Undo, reasons, the cursor
 
@@ -187,11 +226,38 @@ def test_confirmation_labels_and_help_panel(make_app):
     assert not app.closed and not app.show_help and not app._help.visible()
 
 
-def test_view_labels_name_yaw_and_pitch(make_app):
-    app = make_app()
-    views = app._current_frame.meta["views"]
-    text = f"{views[1]['name']}  yaw {round(views[1]['yaw_deg']) % 360}  pitch {round(views[1]['pitch_deg'])}"
-    assert len(app._current_frame.views) == len(views) == 4 and "yaw" in text
+def ink(img: np.ndarray) -> np.ndarray | None:
+    """The part of ``img`` inside the bounding box of what differs from the background (None: nothing)."""
+    rows, cols = np.nonzero(np.abs(img.astype(int) - BACKGROUND).sum(-1) > 30)
+    return None if not len(rows) else img[rows.min():rows.max() + 1, cols.min():cols.max() + 1]
+
+
+def written_label(text: str, size: int, shape) -> np.ndarray:
+    """``text`` as the window's font writes it, in the label colour, on the background."""
+    img = Image.new("RGB", (shape[1], shape[0]), BACKGROUND)
+    ImageDraw.Draw(img).text((4, 2), text, fill=COLORS["dim"], font=ImageFont.load_default(size=size))
+    return np.asarray(img)
+
+
+def test_view_labels_name_yaw_and_pitch(make_app, tiny_dataset):
+    """The text under each view on the screen is its name, yaw and pitch, as the dataset stores them."""
+    app = make_app(window_size=(1280, 720), columns=4)
+    _, fields = next(iter_tar_samples(Path(tiny_dataset) / "shard-000000.tar"))   # read apart from the window
+    views = json.loads(fields["json"])["views"]
+    assert len(views) == 4
+    shot, layout = app.screenshot(), app._layout
+    for i, v in enumerate(views):
+        x0, y0, x1, y1 = layout.image_box(i)
+        sx, _ = layout.slot(i)
+        strip = shot[y1 + 2:y1 + 6 + layout.label_font + 6, sx:sx + layout.slot_w]   # under the image
+        on_screen = ink(strip)
+        yaw, pitch = round(v["yaw_deg"]) % 360, round(v["pitch_deg"])
+        want = ink(written_label(f"{v['name']}  yaw {yaw}  pitch {pitch}", layout.label_font, strip.shape))
+        assert on_screen is not None and on_screen.shape == want.shape, f"view {i}: {v['name']}"
+        assert np.abs(on_screen.astype(int) - want).mean() < 2, f"view {i}: {v['name']}"
+        other = ink(written_label(f"{v['name']}  yaw {(yaw + 45) % 360}  pitch {pitch}", layout.label_font,
+                                  strip.shape))       # the check can fail: another yaw is not what is shown
+        assert other.shape != on_screen.shape or np.abs(on_screen.astype(int) - other).mean() > 2
 
 
 def test_default_window_fits_the_screen():
@@ -269,6 +335,36 @@ def test_the_surface_occludes_what_is_behind_it():
         assert (img[obj].argmax(-1) == want).mean() > 0.97
 
 
+def step_views(jump: float, resolution: int = 48):
+    """A plane facing the camera at depth 2.7 with its right half nearer by ``jump`` (a depth
+    discontinuity down the middle), one view."""
+    K = intrinsics(4.2634)
+    c2w = look_at(np.array([0.0, 0.0, 2.7]))
+    depth = np.full((resolution, resolution), 2.7, np.float32)
+    depth[:, resolution // 2:] -= jump
+    alpha = np.full((resolution, resolution), 255, np.uint8)
+    rgb = np.full((resolution, resolution, 3), 128, np.uint8)
+    return [(c2w, K, rgb, alpha, depth)], K, resolution
+
+
+def test_the_surface_has_no_triangle_across_a_depth_discontinuity():
+    for jump in (0.03, 0.06, 0.3):          # 2.3, 4.5 and 23 times the sample spacing (0.013 at 48 px)
+        views, K, R = step_views(jump)
+        points, tris, _ = surface_mesh(views)
+        near = np.abs(np.linalg.norm(points - np.array([0, 0, 2.7]), axis=1) - 2.7) > jump / 2   # moved half
+        sides = near[tris]
+        assert len(tris) > 1000
+        assert np.all(sides.all(axis=1) | ~sides.any(axis=1)), f"a triangle spans the jump of {jump}"
+    views, _, _ = step_views(0.0)           # a plane tilted 45 degrees (steep but smooth) stays whole
+    c2w, K, rgb, alpha, _ = views[0]
+    rr, cc = np.mgrid[0:48, 0:48]
+    xn, yn = ((cc + 0.5) / 48 - K[0, 2]) / K[0, 0], ((rr + 0.5) / 48 - K[1, 2]) / K[1, 1]
+    t = 2.7 / (1 - xn)                      # the plane Z = 2.7 + X in camera coordinates
+    tilted = (t * np.sqrt(1 + xn ** 2 + yn ** 2)).astype(np.float32)   # distance along each ray
+    _, tris, _ = surface_mesh([(c2w, K, rgb, alpha, tilted)])
+    assert len(tris) >= 0.95 * 2 * 47 ** 2
+
+
 def test_3d_view_is_a_surface_framed_on_the_head(make_app):
     app = make_app(window_size=(640, 480))
     press(app, "v")
@@ -322,31 +418,118 @@ def test_a_session_in_review_and_triage_compiles_to_the_typed_verdicts(make_app,
     assert got == {S0: ("accepted", []), S1: ("rejected", ["multiple_faces"]), S2: ("accepted", [])}
 
 
-@pytest.fixture
-def xvfb(tmp_path):
-    """A virtual display (Xvfb) for the real window; skipped when Xvfb or xdotool is missing."""
+def start_xvfb(*extra):
+    """A virtual display (Xvfb, 1280x800) -> (process, name); skips when Xvfb or xdotool is missing
+    (they are not required: CI machines may lack them)."""
     if not (shutil.which("Xvfb") and shutil.which("xdotool")):
-        pytest.skip("Xvfb and xdotool are needed for the real-window session")
+        pytest.skip("Xvfb and xdotool are needed for the real-window session (apt-get install xvfb xdotool)")
     for n in range(140, 200):
         if not Path(f"/tmp/.X{n}-lock").exists() and not Path(f"/tmp/.X11-unix/X{n}").exists():
             break
-    proc = subprocess.Popen(["Xvfb", f":{n}", "-screen", "0", "1280x800x24", "-nolisten", "tcp", "-noreset"],
+    proc = subprocess.Popen(["Xvfb", f":{n}", "-screen", "0", "1280x800x24", "-nolisten", "tcp", "-noreset", *extra],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 20
     while not Path(f"/tmp/.X11-unix/X{n}").exists() and time.time() < deadline:
         time.sleep(0.05)
-    yield f":{n}"
+    return proc, f":{n}"
+
+
+@pytest.fixture
+def xvfb():
+    proc, name = start_xvfb()
+    yield name
     proc.terminate()
     proc.wait()
 
 
-def test_real_window_session_typed_with_xdotool(xvfb, tiny_dataset, tmp_path):
+@pytest.fixture
+def xvfb_without_opengl():
+    proc, name = start_xvfb("-extension", "GLX")
+    yield name
+    proc.terminate()
+    proc.wait()
+
+
+def test_a_display_without_opengl_is_one_line_and_creates_nothing(xvfb_without_opengl, tiny_dataset, tmp_path):
+    env = dict(os.environ, DISPLAY=xvfb_without_opengl, PYTHONPATH=str(ROOT))
+    labels = tmp_path / "new" / "labels"
+    done = subprocess.run([sys.executable, "-m", "labeling_tool.cli", "review", str(tiny_dataset), "--reviewer", "a",
+                           "--labels", str(labels)], env=env, capture_output=True, text=True, timeout=120)
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 2 and len(lines) == 1, done.stderr
+    assert "has no OpenGL (GLX)" in lines[0] and "--off-screen" in lines[0]
+    assert not (tmp_path / "new").exists()
+
+
+def test_a_window_vtk_cannot_open_leaves_no_labels_folder(tiny_dataset, tmp_path, monkeypatch):
+    """The display opens, then VTK fails to make the window: no log and no folder stay behind."""
+    class Display:
+        lib = handle = None
+
+        def screen_size(self):
+            return 1280, 800
+
+        def close(self):
+            pass
+
+    def no_window(*args, **kwargs):
+        raise UserError("VTK could not open a window on the display ':0' (it made a vtkEGLRenderWindow)")
+
+    monkeypatch.setattr(gui, "XDisplay", Display)
+    monkeypatch.setattr(gui, "Window", no_window)
+    _, queue = build_queue(str(tiny_dataset), "all")
+    labels = tmp_path / "new" / "deeper" / "labels"
+    with pytest.raises(UserError, match="VTK could not open a window"):
+        ReviewApp(tiny_dataset, queue, "alice", labels)
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "kept").mkdir()              # a folder that was there before stays, with its logs
+    (tmp_path / "kept" / "bob.jsonl").write_text("")
+    with pytest.raises(UserError):
+        ReviewApp(tiny_dataset, queue, "alice", tmp_path / "kept")
+    assert sorted(p.name for p in (tmp_path / "kept").iterdir()) == ["bob.jsonl"]
+
+
+@pytest.fixture(scope="module")
+def two_page_dataset(tiny_dataset, tmp_path_factory):
+    """45 subjects in one shard (two triage pages of 40): the tiny dataset's subjects under new ids."""
+    out = tmp_path_factory.mktemp("two-pages") / "ds"
+    samples = list(iter_tar_samples(Path(tiny_dataset) / "shard-000000.tar"))
+    tmp = out.parent / "building"
+    tmp.mkdir()
+    writer = ShardWriter(tmp, 0)
+    for i in range(45):
+        _, fields = samples[i % len(samples)]
+        key = subject_id(i)
+        meta = dict(json.loads(fields["json"]), subject_id=key, subject_index=i)
+        writer.add_subject(key, [(f"{key}.json", dumps(meta))] + [(f"{key}.{f}", b) for f, b in fields.items()
+                                                                   if f != "json"])
+    writer.commit()
+    tiny = read_index(tiny_dataset)
+    spec = JobSpec(out=str(out), gan="procedural", generator_options=tiny["settings"]["generator_options"],
+                   protocol="360", subjects=45, resolution=32, views=4, seed=7, shard_size=45,
+                   software=software_info())
+    atomic_write(tmp / INDEX_NAME, dumps(make_index(spec, tiny["generator"])))
+    tmp.rename(out)
+    return out
+
+
+def grab(display: str, path: Path) -> np.ndarray:
+    """The X screen's pixels, as a person would see them (ImageMagick's import reads the X server)."""
+    subprocess.run(["import", "-window", "root", str(path)], env=dict(os.environ, DISPLAY=display), check=True,
+                   capture_output=True, timeout=60)
+    return np.asarray(Image.open(path).convert("RGB")).astype(int)
+
+
+def test_real_window_session_typed_with_xdotool(xvfb, two_page_dataset, tmp_path):
+    if not shutil.which("import"):
+        pytest.skip("ImageMagick's import is needed to read the screen")
     env = dict(os.environ, DISPLAY=xvfb, PYTHONPATH=str(ROOT))
     labels = tmp_path / "labels"
     log = labels / "zoe.jsonl"
-    proc = subprocess.Popen([sys.executable, "-m", "labeling_tool.cli", "review", str(tiny_dataset),
+    proc = subprocess.Popen([sys.executable, "-m", "labeling_tool.cli", "review", str(two_page_dataset),
                              "--reviewer", "zoe", "--labels", str(labels), "--window-size", "1000x600"], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    shots = iter(range(1000))
 
     def xdo(*args):
         return subprocess.run(["xdotool", *args], env=env, capture_output=True, text=True, timeout=60).stdout
@@ -354,12 +537,36 @@ def test_real_window_session_typed_with_xdotool(xvfb, tiny_dataset, tmp_path):
     def events():
         return [json.loads(x) for x in log.read_text().splitlines()] if log.exists() else []
 
+    def screen():
+        return grab(xvfb, tmp_path / f"shot{next(shots)}.png")
+
     def key(k, expect):
         xdo("key", "--window", window, k)
         deadline = time.time() + 60
         while len(events()) < expect and time.time() < deadline:
             time.sleep(0.05)
         assert len(events()) == expect, f"after {k}: {events()}"
+
+    def settled():
+        """The screen once two grabs in a row agree."""
+        last = screen()
+        for _ in range(50):
+            time.sleep(0.1)
+            now = screen()
+            if np.array_equal(now, last):
+                return now
+            last = now
+        return last
+
+    def key_changes_screen(k, before, least):
+        """Type ``k``, wait for the screen to change (a share ``least`` of its pixels) and settle; the new screen."""
+        xdo("key", "--window", window, k)
+        deadline = time.time() + 60
+        while time.time() < deadline:
+            time.sleep(0.1)
+            if (np.abs(screen() - before).sum(-1) > 30).mean() > least:
+                return settled()
+        raise AssertionError(f"the screen did not change after {k}")
 
     try:
         deadline, window = time.time() + 90, ""
@@ -369,20 +576,39 @@ def test_real_window_session_typed_with_xdotool(xvfb, tiny_dataset, tmp_path):
         assert window, f"no window: {proc.poll()} {proc.stderr.read() if proc.poll() is not None else ''}"
         window = window.split()[0]
         xdo("windowfocus", "--sync", window)
-        key("4", 1)                 # 0 bad (blur)
-        key("g", 2)                 # 1 good
-        key("z", 3)                 # undo names subject 1
-        key("5", 4)                 # 1 bad (other)
-        key("t", 4)
-        key("Return", 5)            # 2 good
-        key("Escape", 5)
+        grid = settled()
+        assert grid.std() > 20                  # views and text, not a blank window
+        key("4", 1)                             # 0 bad (blur)
+        key("g", 2)                             # 1 good
+        key("z", 3)                             # undo names subject 1
+        key("5", 4)                             # 1 bad (other)
+        grid = settled()
+        surface = key_changes_screen("v", grid, least=0.1)      # 3D on: the grid of views gives way to a head
+        middle = surface[150:500, 350:650]      # the window is at the screen's top left, 1000x600
+        assert (np.abs(middle - BACKGROUND).sum(-1) > 40).mean() > 0.2   # the head, in the middle
+        views = key_changes_screen("v", surface, least=0.1)     # and back to the views
+        assert np.abs(views - grid).sum(-1).mean() < 5          # as they were (the notice line aside)
+        triage = key_changes_screen("t", views, least=0.1)
+        flipped = key_changes_screen("space", triage, least=0.0005)   # cell 2 (no verdict) flips to bad: framed red
+        red = (flipped[..., 0] > 200) & (flipped[..., 1] < 90) & (flipped[..., 2] < 90)
+        assert red.sum() > 3 * (red & (triage[..., 0] > 200)).sum() and red.sum() > 200
+        key("Return", 4 + 38)                   # page 1: 2 bad (artifacts), 37 more good, 0 and 1 kept; page 2 shown
+        page2 = settled()
+        assert (np.abs(page2 - flipped).sum(-1) > 30).mean() > 0.1   # 5 subjects on the second page, not 40
+        page1 = key_changes_screen("p", page2, least=0.1)      # a triage page change: back to page 1 ...
+        assert (np.abs(page1 - flipped).sum(-1) > 30).mean() < 0.05  # ... as it was, the flipped cell included
+        key_changes_screen("n", page1, least=0.1)
+        key("Escape", 42)
         out, err = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == 0 and "Traceback" not in err, err
-    assert "zoe: 3/3 reviewed" in out
-    assert [(e["subject"], e["action"], e["reasons"]) for e in events()] == [
-        (S0, "bad", ["blur"]), (S1, "good", []), (S1, "undo", []), (S1, "bad", ["other"]), (S2, "good", [])]
-    m = compile_manifest(tiny_dataset, labels)
-    assert {r["subject"]: r["verdict"] for r in m["subjects"]} == {S0: "rejected", S1: "rejected", S2: "accepted"}
+    assert "zoe: 40/45 reviewed" in out
+    got = [(e["subject"], e["action"], e["reasons"]) for e in events()]
+    assert got[:5] == [(S0, "bad", ["blur"]), (S1, "good", []), (S1, "undo", []), (S1, "bad", ["other"]),
+                       (S2, "bad", ["artifacts"])]
+    assert got[5:] == [(subject_id(i), "good", []) for i in range(3, 40)]
+    m = compile_manifest(two_page_dataset, labels)
+    verdicts = {r["subject"]: r["verdict"] for r in m["subjects"]}
+    assert [verdicts[s] for s in (S0, S1, S2)] == ["rejected"] * 3 and m["header"]["counts"]["unreviewed"] == 5
