@@ -36,6 +36,7 @@ import os
 import select
 import tarfile
 import threading
+import time
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -71,6 +72,7 @@ DEFAULT_REASON = "artifacts"
 TRIAGE_SHAPE = (5, 8)                     # rows, columns of a triage page
 TRIAGE_YAWS = (0.0, 180.0, 90.0, 270.0)   # the view shown in triage: front, back, left, right (c cycles)
 OFF_SCREEN_SIZE = (1600, 900)
+SURFACE_AFTER_S = 1.0                     # a subject's 3D surface is made ahead once shown this long
 HUD_LINES = ("status", "detail", "notice", "keys")  # the heads-up block, top to bottom
 BACKGROUND = (32, 32, 32)
 COLORS = {"good": (60, 200, 90), "bad": (235, 60, 50), "skip": (150, 150, 150), "cursor": (255, 220, 0),
@@ -686,15 +688,25 @@ def surface_actor(mesh: vtkPolyData) -> vtkActor:
 # Background preparation
 
 
+_DROPPED = object()  # what a delayed job that is no longer wanted returns
+
+
 class Prefetcher:
     """Values by key, made in one background thread when asked ahead (:meth:`want`) or at once when
-    needed (:meth:`get`); the newest ``size`` are kept."""
+    needed (:meth:`get`); the newest ``size`` are kept.
+
+    A job may wait ``delay`` seconds before it starts: it is made only if it is still wanted then
+    (or at once when :meth:`get` needs it), so costly work that may never be used (the 3D surface
+    of a subject the reviewer passes in under a second) does not compete with the keys.
+    """
 
     def __init__(self, size: int):
         self.size = size
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="label-tool-prefetch")
         self._values: OrderedDict = OrderedDict()
         self._futures: dict = {}
+        self._wanted: set = set()   # the keys of the latest want()
+        self._needed: set = set()   # keys get() waits for: a delayed job starts at once
         self._lock = threading.Lock()
 
     def _keep(self, key, value):
@@ -704,18 +716,29 @@ class Prefetcher:
             while len(self._values) > self.size:
                 self._values.popitem(last=False)
 
-    def want(self, keys_and_makers) -> None:
-        """Make these values in the background, in order; queued work for other keys is dropped."""
-        wanted = {k for k, _ in keys_and_makers}
+    def want(self, jobs) -> None:
+        """Make these values in the background, in order: jobs (key, maker) or (key, maker, delay
+        in seconds); queued work for other keys is dropped."""
+        jobs = [(job[0], job[1], job[2] if len(job) > 2 else 0.0) for job in jobs]
+        now = time.monotonic()
         with self._lock:
+            self._wanted = {k for k, _, _ in jobs}
             for key in list(self._futures):
-                if key not in wanted and self._futures[key].cancel():
+                if key not in self._wanted and self._futures[key].cancel():
                     del self._futures[key]
-            todo = [(k, fn) for k, fn in keys_and_makers if k not in self._values and k not in self._futures]
-            for key, fn in todo:
-                self._futures[key] = self._pool.submit(self._run, key, fn)
+            for key, fn, delay in jobs:
+                if key not in self._values and key not in self._futures:
+                    self._futures[key] = self._pool.submit(self._run, key, fn, now + delay)
 
-    def _run(self, key, fn):
+    def _run(self, key, fn, start_at: float):
+        while time.monotonic() < start_at:
+            with self._lock:
+                if key in self._needed:
+                    break
+                if key not in self._wanted:  # moved on before it was due: not made
+                    self._futures.pop(key, None)
+                    return _DROPPED
+            time.sleep(0.02)
         value = fn()
         self._keep(key, value)
         with self._lock:  # done: the value is kept, the future need not be
@@ -728,14 +751,23 @@ class Prefetcher:
                 self._values.move_to_end(key)
                 return self._values[key]
             future = self._futures.pop(key, None)
-        if future is not None and not future.cancel():
-            return future.result()
+            if future is not None:
+                self._needed.add(key)
+        try:
+            if future is not None and not future.cancel():
+                value = future.result()
+                if value is not _DROPPED:
+                    return value
+        finally:
+            with self._lock:
+                self._needed.discard(key)
         value = fn()
         self._keep(key, value)
         return value
 
     def clear(self):
         with self._lock:
+            self._wanted = set()
             for f in self._futures.values():
                 f.cancel()
             self._futures.clear()
@@ -1139,8 +1171,9 @@ class ReviewApp:
         self.refresh()
         ahead = [self.queue[p] for p in (self.pos + 1, self.pos + 2, self.pos - 1) if 0 <= p < len(self.queue)]
         work = [((it.subject, size), (lambda it=it: self._make_review_frame(it, size))) for it in ahead]
-        if frame.meta is not None:  # this subject's 3D surface, once the next two are ready
-            work.insert(2, (("surface", item.subject), lambda: self._surface_of(item, frame)))
+        if frame.meta is not None:  # this subject's 3D surface, once the next two are ready and the
+            # reviewer has stayed a while (most subjects are never seen in 3D; v makes it at once)
+            work.insert(2, (("surface", item.subject), lambda: self._surface_of(item, frame), SURFACE_AFTER_S))
         self.frames.want(work)
 
     def status_text(self) -> tuple[str, str]:

@@ -27,8 +27,8 @@ from datagen.shards import INDEX_NAME, ShardWriter, dumps, iter_tar_samples, rea
 from labeling_tool import gui  # noqa: E402
 from labeling_tool.cli import build_queue, main as label_main  # noqa: E402
 from datagen.events import read_log  # noqa: E402
-from labeling_tool.gui import (BACKGROUND, COLORS, FLAG_REASON, HELP, Layout, QueueItem, ReviewApp,  # noqa: E402
-                               Window, fit_window, polydata, surface_actor, surface_mesh, view_points)
+from labeling_tool.gui import (BACKGROUND, COLORS, FLAG_REASON, HELP, Layout, Prefetcher, QueueItem,  # noqa: E402
+                               ReviewApp, Window, fit_window, polydata, surface_actor, surface_mesh, view_points)
 from labeling_tool.manifest import compile_manifest  # noqa: E402
 from labeling_tool.preflags import DETECTOR_NAMES  # noqa: E402
 
@@ -365,6 +365,26 @@ def test_the_surface_has_no_triangle_across_a_depth_discontinuity():
     assert len(tris) >= 0.95 * 2 * 47 ** 2
 
 
+def test_a_delayed_job_is_made_only_if_still_wanted_or_needed():
+    """The 3D surface is prepared ahead only for a subject the reviewer stays on, and v never waits
+    for that delay."""
+    made = []
+
+    def maker(key):
+        return lambda: made.append(key) or key
+    jobs = Prefetcher(4)
+    jobs.want([("a", maker("a"), 0.5)])
+    jobs.want([("b", maker("b"))])          # moved on before a was due: a is not made
+    assert jobs.get("b", maker("b")) == "b"
+    time.sleep(0.8)
+    assert made == ["b"]
+    jobs.want([("c", maker("c"), 30.0)])
+    started = time.monotonic()
+    assert jobs.get("c", maker("c")) == "c" and time.monotonic() - started < 10   # needed now: made at once
+    assert made == ["b", "c"]
+    jobs.close()
+
+
 def test_3d_view_is_a_surface_framed_on_the_head(make_app):
     app = make_app(window_size=(640, 480))
     press(app, "v")
@@ -576,8 +596,11 @@ def test_real_window_session_typed_with_xdotool(xvfb, two_page_dataset, tmp_path
         assert window, f"no window: {proc.poll()} {proc.stderr.read() if proc.poll() is not None else ''}"
         window = window.split()[0]
         xdo("windowfocus", "--sync", window)
+        deadline = time.time() + 60
+        while screen().std() < 20 and time.time() < deadline:   # the first frame: views and text
+            time.sleep(0.2)
         grid = settled()
-        assert grid.std() > 20                  # views and text, not a blank window
+        assert grid.std() > 20                  # not a blank window
         key("4", 1)                             # 0 bad (blur)
         key("g", 2)                             # 1 good
         key("z", 3)                             # undo names subject 1
