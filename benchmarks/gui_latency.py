@@ -400,6 +400,10 @@ def render(results: dict) -> str:
         "floor spend their time drawing the frame, not preparing it.",
         "Keys come at a reviewer's pace (0.8 s after each answered review key, 2 s in triage), which gives the "
         "background thread time to prepare the next subjects and the next page; held-down keys are slower.",
+        "A subject's 3D surface is prepared ahead only once the subject has been on screen for 1 s (most subjects are "
+        "never seen in 3D, and on 2 CPUs that work competes with the keys); with 0.8 s between keys here, `v` finds "
+        "it not made or being made, so the 3D row includes decoding the 32 depth maps and masks and building the "
+        "mesh.",
         "The throughput figures assume the judgement times stated; they say how much of a reviewer's hour the window "
         "itself takes, not how fast people are."]) + [""]
     lines += reproduce(results["command"])
