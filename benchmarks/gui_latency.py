@@ -301,7 +301,11 @@ def session(dataset: Path, display: str, counts, shots: Path, tag: str) -> dict:
         for _ in range(n_3d):
             run("view3d_on", "v", 1, 1.0)
             run("view3d_off", "v", 1, 0.8)
+        grid = client.pixels()
         client.key("v")
+        deadline = time.perf_counter() + 30   # the surface may be made only now: wait for the 3D frame
+        while np.array_equal(client.pixels(), grid) and time.perf_counter() < deadline:
+            client.damage_times(0.3)
         client.damage_times(0.5)
         save_png(client.pixels(), shots / f"gui_latency_{tag}_3d.png")
         client.key("v")
