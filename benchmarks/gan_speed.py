@@ -20,7 +20,7 @@ views super-resolved at once) and one view per call, side by side with the arms 
 repeats; (3) samples per ray against error, against a 4x-samples reference; (4) the memory budget
 against time; (5) clipping the rays to the generator's box: time and PSNR against the unclipped
 render; (6) precision: the originals' fp16 super-resolution against fp32 on the production-SR
-fixtures (``fixtures/gan-sr``, 512 px, clamps active), the fp16 convolutions emulated on the CPU. Times are
+fixtures (``fixtures/gan-sr``, 512 px, clamps active), the fp16 convolutions summing in fp32 on the CPU. Times are
 ``time.perf_counter`` wall seconds after a warm-up; tables give medians.
 """
 from __future__ import annotations
@@ -33,11 +33,8 @@ import time
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
-import torch
-import torch.nn.functional as F
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.common import (REPO, bullets, fmt, load_note, measurement_header, median, psnr_db, pyplot,  # noqa: E402
@@ -46,7 +43,6 @@ from datagen.cameras import sample_views  # noqa: E402
 from datagen.generators import GANS, make_generator  # noqa: E402
 from datagen.generators.base import STREAM_CAMERAS, subject_rng  # noqa: E402
 from datagen.generators.gan import ChunkPlan  # noqa: E402
-from datagen.gans import ops as gan_ops  # noqa: E402
 
 NAME = "gan_speed"
 SHARED = Path(os.environ.get("PANOLAM_SHARED", REPO.parent / "shared"))
@@ -336,32 +332,6 @@ def sr_checkpoint_path(model: str) -> Path:
 PRECISION_VIEWS = 4  # a few 512 px views tell the difference
 
 
-def _conv_in_fp32(conv):
-    """``conv`` that takes fp16 tensors, accumulates in fp32 and rounds its output to fp16."""
-    def wrapped(x, w, *args, **kwargs):
-        if x.dtype != torch.float16:
-            return conv(x, w, *args, **kwargs)
-        up = [a.float() if isinstance(a, torch.Tensor) else a for a in args]
-        kw = {k: v.float() if isinstance(v, torch.Tensor) else v for k, v in kwargs.items()}
-        return conv(x.float(), w.float(), *up, **kw).half()
-    return wrapped
-
-
-@contextmanager
-def fp16_convolutions_accumulated_in_fp32():
-    """The GAN ops' convolutions with fp16 inputs and outputs and fp32 sums, as CUDA's fp16 convolutions
-    on tensor cores compute them. This CPU's own fp16 convolutions are unusable: a 256-channel 3x3
-    convolution at 256 px takes 3.5 s in fp32 and had not finished after 5 minutes in fp16 (AVX2,
-    no native fp16 arithmetic)."""
-    namespace = SimpleNamespace(**{k: getattr(F, k) for k in dir(F) if not k.startswith("__")})
-    namespace.conv2d, namespace.conv_transpose2d = _conv_in_fp32(F.conv2d), _conv_in_fp32(F.conv_transpose2d)
-    saved, gan_ops.F = gan_ops.F, namespace
-    try:
-        yield
-    finally:
-        gan_ops.F = saved
-
-
 def precision(generators: dict, plan_: Plan) -> dict:
     out = {}
     for model in generators:
@@ -375,8 +345,7 @@ def precision(generators: dict, plan_: Plan) -> dict:
         images = {}
         for p in ("fp32", "fp16"):
             g.G.precision = p
-            with fp16_convolutions_accumulated_in_fp32():
-                images[p], images[p + "_s"] = timed(g.render, subject, views, g.G.img_resolution)
+            images[p], images[p + "_s"] = timed(g.render, subject, views, g.G.img_resolution)
         diff = np.abs(images["fp16"].rgb.astype(np.float64) - images["fp32"].rgb)
         out[model] = {"views": len(views), "resolution": g.G.img_resolution, "max_abs": float(diff.max()),
                       "mean_abs": float(diff.mean()), "psnr_db": psnr_db(float(np.mean(diff ** 2))),
@@ -504,7 +473,7 @@ def precision_conclusions(results: dict) -> list[str]:
         if "skipped" in d:
             lines.append(f"{model}: precision not measured ({d['skipped']}).")
             continue
-        lines.append(f"{model}: the fp16 super-resolution (the originals' CUDA arithmetic, emulated on the CPU) against "
+        lines.append(f"{model}: the fp16 super-resolution (the originals' CUDA arithmetic, on the CPU) against "
                      f"fp32 at {d['resolution']} px: {fmt(d['psnr_db'], 1)} dB, max |difference| "
                      f"{d['max_abs']:.1e}, {100 * d['levels_changed']:.1f} % of the 8-bit values change.")
     return lines
@@ -635,11 +604,12 @@ def precision_section(results: dict) -> list[str]:
              "clamped, as the originals on CUDA) against fp32, same planes and cameras. On CUDA `--precision auto` "
              "(the default) runs the fp16 path; `--precision fp32` opts out. This CPU has no usable fp16 "
              "convolutions (AVX2: a 256-channel 3x3 convolution at 256 px takes 3.5 s in fp32 and had not "
-             "finished after 5 minutes in fp16), so the fp16 path runs with its convolutions taking fp16 inputs, "
-             "summing in fp32 and rounding the output to fp16, as CUDA's fp16 convolutions on tensor cores do; "
-             "every other operation is the fp16 path as it is. The emulated time says nothing about a GPU.", ""] +
+             "finished after 5 minutes in fp16), so on the CPU the fp16 path's convolutions take fp16 inputs, sum "
+             "in fp32 and round their output to fp16, as CUDA's fp16 convolutions on tensor cores do "
+             "(`datagen/gans/ops.py`); every other operation is the fp16 path as it is. The fp16 time says "
+             "nothing about a GPU.", ""] +
             table(["model", "views", "px", "PSNR dB", "max abs", "mean abs", "8-bit values changed", "fp32 s",
-                   "fp16 s (emulated)"], rows))
+                   "fp16 s (CPU, fp32 sums)"], rows))
 
 
 def samples_section(results: dict) -> list[str]:

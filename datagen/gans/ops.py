@@ -81,7 +81,7 @@ def upfirdn2d(x, f, up=1, down=1, padding=(0, 0, 0, 0), gain=1.0):
     x = F.pad(x, [max(px0, 0), max(px1, 0), max(py0, 0), max(py1, 0)])
     x = x[:, :, max(-py0, 0): x.shape[2] - max(-py1, 0), max(-px0, 0): x.shape[3] - max(-px1, 0)]
     f = (f * (gain ** (f.ndim / 2))).to(x.dtype).flip([0, 1])
-    x = F.conv2d(x, f[None, None].repeat(c, 1, 1, 1), groups=c)
+    x = _conv(x, f[None, None].repeat(c, 1, 1, 1), groups=c)
     return x[:, :, ::down, ::down]
 
 
@@ -92,6 +92,10 @@ def upsample2d(x, f, up=2):
 
 
 def _conv(x, w, stride=1, padding=0, groups=1, transpose=False, flip_weight=True):
+    if x.dtype == torch.float16 and x.device.type == "cpu":
+        # A CPU without fp16 arithmetic (AVX2) runs fp16 convolutions on a reference path, minutes
+        # for one 512 px layer; sum in fp32 and round to fp16 instead, as CUDA's tensor cores do.
+        return _conv(x.float(), w.float(), stride, padding, groups, transpose, flip_weight).half()
     kh, kw = w.shape[2:]
     if not flip_weight and (kw > 1 or kh > 1):
         w = w.flip([2, 3])
