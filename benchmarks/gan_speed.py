@@ -351,7 +351,7 @@ def precision(generators: dict, plan_: Plan) -> dict:
                       "mean_abs": float(diff.mean()), "psnr_db": psnr_db(float(np.mean(diff ** 2))),
                       "levels_changed": float(np.mean(np.round(images["fp16"].rgb * 255) !=
                                                       np.round(images["fp32"].rgb * 255))),
-                      "fp32_s": images["fp32_s"], "fp16_emulated_s": images["fp16_s"]}
+                      "fp32_s": images["fp32_s"], "fp16_cpu_s": images["fp16_s"]}
     return out
 
 
@@ -597,7 +597,7 @@ def clipping_section(results: dict) -> list[str]:
 
 def precision_section(results: dict) -> list[str]:
     rows = [[m, d["views"], d["resolution"], fmt(d["psnr_db"], 1), f"{d['max_abs']:.1e}", f"{d['mean_abs']:.1e}",
-             f"{100 * d['levels_changed']:.1f} %", fmt(d["fp32_s"]), fmt(d["fp16_emulated_s"])]
+             f"{100 * d['levels_changed']:.1f} %", fmt(d["fp32_s"]), fmt(d["fp16_cpu_s"])]
             for m, d in results["precision"].items() if "skipped" not in d]
     return (["The production-SR fixtures (8XDC, 128 -> 512 px, conv_clamp 256 active in some channels) rendered "
              "with the super-resolution in fp16 (weights and styles pre-normalized, bias and activation in fp32, "

@@ -213,7 +213,8 @@ def read_checkpoint(path, expected_kind: str | None = None) -> LoadedCheckpoint:
     the opcodes are scanned before unpickling, the module tree and the stored kwargs are walked
     once each (sharing and depth refused), the kwargs are range-checked, and our modules are first
     built without memory (the meta device) and compared name by name and shape by shape with the
-    file's tensors, whose elements must fit in the file's bytes, before anything is allocated. Every refusal is one line naming the file.
+    file's tensors, whose elements must fit in the file's bytes, before anything is allocated.
+    Every refusal is one line naming the file.
     """
     path = Path(path)
     hint = f" ({OFFICIAL_SOURCES[expected_kind]})" if expected_kind in OFFICIAL_SOURCES else ""

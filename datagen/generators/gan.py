@@ -36,7 +36,7 @@ CUDA_BUDGET_FRACTION = 0.25
 # Ray chunks are whole multiples of this (measured: the decoder's matrix products then give the same
 # bits for every ray whatever the chunk size). Super-resolution batches hold at least two views; the
 # convolution kernels MKL-DNN picks depend on the batch size, so on some CPUs (AMD EPYC, AVX2) two
-# batch sizes differ in the last bits of the image (<= 2e-6 on [0, 1], measured), never more.
+# batch sizes differ in the last bits of the image (measured: at most 2e-6 on [0, 1]).
 CHUNK_RAYS_QUANTUM = 1024
 MIN_SR_BATCH = 2
 
