@@ -1,53 +1,72 @@
 """Quality and speed of the automatic pre-flags against the procedural generator's injected defects.
 
-Thresholds (each detector's ``Settings`` in ``labeling_tool/preflags/``) were chosen on a tuning dataset (procedural, seed 0);
-this benchmark reports precision / recall on a held-out dataset made the same way with a different
-seed (default 1), and, for reference, the same numbers on the tuning dataset when it is given.
+Protocol:
+- Thresholds (each detector's ``Settings`` in ``labeling_tool/preflags/``) are robust z-scores
+  against the dataset; their values were chosen looking only at datasets made with the tuning seed
+  (``--tune-seed``). Its numbers are reported apart, for reference.
+- Held out: ``--seeds`` (never looked at while choosing thresholds), each made at ``--defect-rate``
+  and at the generator's default rate: the same people, with fewer defects.
+- Learning from reviewers: on a larger held-out dataset (``--learn-subjects`` at ``--learn-resolution``),
+  the first ``--verdicts`` subjects of the pre-flag queue are given their true verdict (a reviewer
+  working down the queue), ``learn_ranking`` re-ranks the rest; the share of all defective subjects
+  found within the first 30 % of the queue, with and without learning.
 
-    python benchmarks/preflags_quality.py                       # generate both datasets (about 25 min on 2 cores)
-    python benchmarks/preflags_quality.py --data /tmp/pf_test --tune-data /tmp/pf_tune   # reuse datasets
-    python benchmarks/preflags_quality.py --report-only         # rewrite the markdown from the JSON
+Per injected class (matched to its detector) and for any defect (any flag): precision, recall at the
+tool's own flag threshold, AUC of the detector's score (subjects with that defect against clean
+ones), flags on clean subjects; and scoring speed. The scorer never reads ``truth/``; only this
+benchmark does, to count hits. A detector's false positives are subjects it flags that lack its
+defect (clean or another defect).
 
-Writes ``benchmarks/reports/preflags_quality.{json,md}``. The scorer itself never reads ``truth/``;
-only this benchmark does, to count hits. Matching: janus -> janus, hole -> holes, floaters ->
-floaters, washed_out -> washed_out; "any" compares "any flag" with "any injected defect". Precision of
-a detector counts every subject it flags that lacks its defect type (clean or another defect) as a
-false positive.
+    python benchmarks/preflags_quality.py --keep /tmp/pfq     # about 25 min on 2 cores, datasets kept
+    python benchmarks/preflags_quality.py --keep /tmp/pfq     # again: reuses the datasets
+    python benchmarks/preflags_quality.py --report-only       # rewrite the markdown from the JSON
+    python benchmarks/preflags_quality.py --gallery-only      # the defect gallery alone
+
+Writes ``benchmarks/reports/preflags_quality.{json,md}`` and the gallery ``preflags_gallery.png``
+(every injected class at a low and a high severity, seen from the front, behind-left and behind).
 """
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import io
 import json
-import os
-import platform
 import sys
-import tarfile
 import tempfile
 import time
-from datetime import datetime, timezone
 from pathlib import Path
+
+import numpy as np
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 sys.path.insert(0, str(REPO))
 
-from labeling_tool import preflags  # noqa: E402
+from benchmarks.common import load_average, machine_info  # noqa: E402
+from datagen.generators.procedural import DEFECT_TYPES, ProceduralConfig  # noqa: E402
+from labeling_tool.preflags import pipeline  # noqa: E402
+from labeling_tool.preflags.learn import auc, learn_ranking  # noqa: E402
+from labeling_tool.preflags.registry import DETECTOR_NAMES  # noqa: E402
 
-MATCH = {"janus": "janus", "hole": "holes", "floaters": "floaters", "washed_out": "washed_out"}
+MATCH = {d: ("holes" if d == "hole" else d) for d in DEFECT_TYPES}  # injected class -> its detector
 REPORT = HERE / "reports" / "preflags_quality"
+GALLERY = HERE / "reports" / "preflags_gallery.png"
+QUEUE_SHARE = 0.30
+# What the thresholds were chosen on (the held-out seeds were not generated until they were fixed).
+TUNED_ON = ("seeds 0 and 1 (96 subjects each, these settings) and seed 2 (40 subjects at a 100 % rate "
+            "of the five back-of-head and haze classes)")
+GOALS = {"any_precision": 0.9, "any_recall": 0.9, "janus_recall": 0.9, "class_recall": 0.85, "clean_flagged": 0.03,
+         "learn_recall_at_30": 0.95}
 
 
-def generate(out: Path, seed: int, args) -> float:
+def generate(out: Path, seed: int, rate: float, subjects: int, resolution: int, workers: int) -> float:
+    """Make (or finish) a procedural 360 dataset; returns the seconds spent (0 when it was complete)."""
     from datagen.pipeline import JobSpec, run_sample, software_info
 
     t0 = time.perf_counter()
-    spec = JobSpec(out=str(out), gan="procedural", generator_options={"defect_rate": args.defect_rate},
-                   protocol="360", subjects=args.subjects, resolution=args.resolution, views=32, seed=seed,
-                   shard_size=args.shard_size, software=software_info())
-    run_sample(spec, progress=not args.quiet, workers=args.workers)
-    return time.perf_counter() - t0
+    spec = JobSpec(out=str(out), gan="procedural", generator_options={"defect_rate": rate}, protocol="360",
+                   subjects=subjects, resolution=resolution, views=32, seed=seed, shard_size=16,
+                   software=software_info())
+    summary = run_sample(spec, progress=False, workers=workers, resume=True)
+    return round(time.perf_counter() - t0, 1) if summary["shards_written"] else 0.0
 
 
 def load_truth(root: Path) -> dict:
@@ -58,284 +77,299 @@ def load_truth(root: Path) -> dict:
     return truth
 
 
+def scored(root: Path, workers: int) -> tuple[dict, list]:
+    """(report, thumbnails in report order), timing included."""
+    t0 = time.perf_counter()
+    extracted = pipeline.extract(root, workers)
+    report = pipeline.score(extracted)
+    seconds = time.perf_counter() - t0
+    report["timing"] = {"seconds": round(seconds, 2), "subjects_per_second": round(len(report["subjects"]) / seconds, 1),
+                        "workers": workers, "load_before": None}
+    thumbs = {r["key"]: (r["measured"].get("duplicate") or {}).get("thumb") for _, r in extracted["records"]
+              if "error" not in r}
+    return report, [thumbs.get(s["subject"]) for s in report["subjects"]]
+
+
 def prf(tp: int, fp: int, fn: int) -> dict:
     p = tp / (tp + fp) if tp + fp else None
     r = tp / (tp + fn) if tp + fn else None
-    f = 2 * p * r / (p + r) if p and r else (0.0 if p is not None and r is not None else None)
-    return {"tp": tp, "fp": fp, "fn": fn, "precision": p, "recall": r, "f1": f}
+    return {"tp": tp, "fp": fp, "fn": fn, "positives": tp + fn, "precision": p, "recall": r}
 
 
 def evaluate(report: dict, truth: dict) -> dict:
+    """Per class and any-defect counts, AUCs, clean flags, misses (with the detector's explanation)."""
     subjects = report["subjects"]
-    keys = [s["subject"] for s in subjects]
-    missing = [k for k in keys if k not in truth]
+    missing = [s["subject"] for s in subjects if s["subject"] not in truth]
     if missing:
         raise SystemExit(f"truth lacks {len(missing)} subjects (e.g. {missing[0]})")
+    has = lambda s, d: d in truth[s["subject"]]  # noqa: E731
+    clean = [s for s in subjects if not truth[s["subject"]]]
     rows = {}
     for defect, det in MATCH.items():
-        tp = sum(1 for s in subjects if det in s["flags"] and defect in truth[s["subject"]])
-        fp = sum(1 for s in subjects if det in s["flags"] and defect not in truth[s["subject"]])
-        fn = sum(1 for s in subjects if det not in s["flags"] and defect in truth[s["subject"]])
-        rows[f"{defect} -> {det}"] = prf(tp, fp, fn) | {"positives": tp + fn}
-    tp = sum(1 for s in subjects if s["flags"] and truth[s["subject"]])
-    fp = sum(1 for s in subjects if s["flags"] and not truth[s["subject"]])
-    fn = sum(1 for s in subjects if not s["flags"] and truth[s["subject"]])
-    rows["any defect -> any flag"] = prf(tp, fp, fn) | {"positives": tp + fn}
-    clean = [s for s in subjects if not truth[s["subject"]]]
-    clean_fp = {name: sum(1 for s in clean if name in s["flags"]) for name in preflags.DETECTOR_NAMES}
-    # Ranking quality: share of defective subjects among the first k of the worst-first queue.
-    n_def = sum(1 for k in keys if truth[k])
-    top = {str(k): sum(1 for s in subjects[:k] if truth[s["subject"]]) / k for k in (n_def // 2, n_def) if k}
+        flagged = [det in s["flags"] for s in subjects]
+        pos = [has(s, defect) for s in subjects]
+        row = prf(sum(f and p for f, p in zip(flagged, pos)), sum(f and not p for f, p in zip(flagged, pos)),
+                  sum(p and not f for f, p in zip(flagged, pos)))
+        pair = [(s["detectors"][det]["score"], int(has(s, defect))) for s in subjects if has(s, defect) or not truth[s["subject"]]]
+        row["auc"] = auc(np.array([y for _, y in pair]), np.array([x for x, _ in pair])) if pair else None
+        rows[defect] = row
+    bad = [bool(truth[s["subject"]]) for s in subjects]
+    flagged = [bool(s["flags"]) for s in subjects]
+    rows["any"] = prf(sum(f and b for f, b in zip(flagged, bad)), sum(f and not b for f, b in zip(flagged, bad)),
+                      sum(b and not f for f, b in zip(flagged, bad)))
+    rows["any"]["auc"] = auc(np.array(bad, dtype=int), np.array([s["score"] for s in subjects]))
     return {
-        "subjects": len(subjects),
-        "clean": len(clean),
-        "defective": n_def,
-        "by_type": {d: sum(1 for k in keys if d in truth[k]) for d in MATCH},
+        "subjects": len(subjects), "clean": len(clean), "defective": sum(bad),
         "rows": rows,
-        "false_positive_rate_clean": (sum(1 for s in clean if s["flags"]) / len(clean)) if clean else None,
-        "clean_flags_by_detector": clean_fp,
-        "defect_share_in_top_k": top,
-        "missed": sorted([{"subject": s["subject"], "defects": truth[s["subject"]],
-                           "why": s["detectors"][MATCH[truth[s["subject"]][0]]]["why"]}
-                          for s in subjects if truth[s["subject"]] and truth[s["subject"]][0] in MATCH
-                          and MATCH[truth[s["subject"]][0]] not in s["flags"]], key=lambda m: m["subject"]),
-        "clean_flagged": [{"subject": s["subject"], "flags": s["flags"],
-                           "why": {f: s["detectors"][f]["why"] for f in s["flags"]}} for s in clean if s["flags"]],
+        "clean_flagged_share": sum(1 for s in clean if s["flags"]) / len(clean) if clean else None,
+        "clean_flags_by_detector": {n: sum(1 for s in clean if n in s["flags"]) for n in DETECTOR_NAMES},
+        "missed": [{"subject": s["subject"], "defect": d, "why": s["detectors"][MATCH[d]]["why"]}
+                   for s in subjects for d in truth[s["subject"]] if MATCH[d] not in s["flags"]],
+        "clean_flagged": [{"subject": s["subject"], "why": {f: s["detectors"][f]["why"] for f in s["flags"]}}
+                          for s in clean if s["flags"]],
+        "timing": report["timing"],
     }
 
 
-def make_big_shard(src: Path, dst: Path, n: int) -> None:
-    """A one-shard dataset of n subjects made by repeating the source subjects under new ids (timing only)."""
-    index = json.loads((src / "index.json").read_text())
-    dst.mkdir(parents=True, exist_ok=True)
-    tar_path = dst / "shard-000000.tar"
-    keys = []
-    with tarfile.open(tar_path, "w", format=tarfile.USTAR_FORMAT) as out:
-        while len(keys) < n:
-            for shard in index["shards"]:
-                with tarfile.open(src / f"{shard['name']}.tar", "r:") as tar:
-                    current, new = None, None
-                    for m in tar:
-                        key, _, field = m.name.partition(".")
-                        if key != current:
-                            if len(keys) >= n:
-                                break
-                            current, new = key, f"subj{len(keys):08d}"
-                            keys.append(new)
-                        data = tar.extractfile(m).read()
-                        if field == "json":
-                            meta = json.loads(data)
-                            meta["subject_id"] = new
-                            data = (json.dumps(meta, sort_keys=True, indent=1) + "\n").encode()
-                        info = tarfile.TarInfo(f"{new}.{field}")
-                        info.size = len(data)
-                        out.addfile(info, io.BytesIO(data))
-                if len(keys) >= n:
-                    break
-    index = dict(index, num_subjects=n, shards=[{"name": "shard-000000", "subjects": keys}])
-    (dst / "index.json").write_text(json.dumps(index, sort_keys=True, indent=1) + "\n")
-    (dst / "shard-000000.json").write_text(json.dumps({"shard": "shard-000000", "subjects": keys}) + "\n")
+def pooled(evals: list[dict]) -> dict:
+    """Counts summed over datasets; AUC is not pooled (each dataset's z-scores have their own baseline)."""
+    out = {}
+    for name in evals[0]["rows"]:
+        tp, fp, fn = (sum(e["rows"][name][k] for e in evals) for k in ("tp", "fp", "fn"))
+        out[name] = prf(tp, fp, fn)
+        aucs = [e["rows"][name]["auc"] for e in evals if e["rows"][name]["auc"] is not None]
+        out[name]["auc_min"] = min(aucs) if aucs else None
+    clean = sum(e["clean"] for e in evals)
+    out["clean_flagged_share"] = sum(len(e["clean_flagged"]) for e in evals) / clean if clean else None
+    return out
 
 
-def _load() -> float | None:
-    try:
-        return round(os.getloadavg()[0], 2)
-    except OSError:
-        return None
+def learning(report: dict, thumbs: list, truth: dict, verdicts: int) -> dict:
+    """The first ``verdicts`` subjects of the pre-flag queue get their true verdict; of the subjects left,
+    the share of the defective ones within the first QUEUE_SHARE of what is left, in pre-flag order
+    and re-ranked by ``learn_ranking``."""
+    order = [s["subject"] for s in report["subjects"]]
+    labels = {k: int(bool(truth[k])) for k in order[:verdicts]}
+    learn_ranking(report, labels, thumbs)
+    rest = [s for s in report["subjects"] if s["subject"] not in labels]
+    learned = [s["subject"] for s in sorted(rest, key=lambda s: (-s["rank"], s["subject"]))]
+    left = [s["subject"] for s in rest]
+    n_bad = sum(1 for k in left if truth[k])
+    cut = int(round(QUEUE_SHARE * len(left)))
+
+    def recall(queue):
+        return sum(1 for k in queue[:cut] if truth[k]) / n_bad if n_bad else None
+    return {"subjects": len(order), "defective": sum(1 for k in order if truth[k]), "verdicts": len(labels),
+            "bad_verdicts": sum(labels.values()), "left": len(left), "left_defective": n_bad, "queue_cut": cut,
+            "recall_without": recall(left), "recall_with": recall(learned), "learned": report.get("learned")}
 
 
-def dataset_timing(root: Path, workers_list) -> dict:
-    res = {}
-    for w in workers_list:
-        load = _load()
-        t0 = time.perf_counter()
-        rep = preflags.score_dataset(root, workers=w)
-        dt = time.perf_counter() - t0
-        res[str(w)] = {"seconds": round(dt, 2), "subjects_per_second": round(rep["summary"]["subjects"] / dt, 1),
-                       "load_before": load}
-    return res
+def gallery(path: Path, subject: int = 2, res: int = 128) -> None:
+    """Every injected class at severity 0.4 and 1.0 on one subject: front, yaw 135 and back views."""
+    from PIL import Image, ImageDraw
 
+    from datagen.cameras import ViewSet
+    from datagen.generators.base import STREAM_LATENT, Subject, subject_rng
+    from datagen.generators.procedural import ProceduralHeads, bake_head, sample_defects, sample_params
 
-def timing(root: Path, big_n: int, workers_list) -> dict:
-    res = {}
-    with tempfile.TemporaryDirectory(prefix="preflags-big-") as tmp:
-        big = Path(tmp) / "big"
-        make_big_shard(root, big, big_n)
-        size = (big / "shard-000000.tar").stat().st_size
-        for w in workers_list:
-            load = _load()
-            t0 = time.perf_counter()
-            rep = preflags.score_dataset(big, workers=w)
-            dt = time.perf_counter() - t0
-            res[str(w)] = {"subjects": rep["summary"]["subjects"], "seconds": round(dt, 2),
-                           "subjects_per_second": round(rep["summary"]["subjects"] / dt, 1), "load_before": load}
-        res["shard_bytes"] = size
-    return res
-
-
-def measure_timing(data: dict, held: Path, args) -> None:
-    workers = sorted({1, max(1, args.workers)})
-    data["timing"] = {"dataset": dataset_timing(held, workers)}
-    if args.big_shard:
-        data["timing"]["big_shard"] = timing(held, args.big_shard, workers)
+    gen = ProceduralHeads(ProceduralConfig(defect_rate=0.0))
+    yaw = np.array([0.0, 135.0, 180.0])
+    views = ViewSet("360", yaw, np.zeros(3), np.full(3, 2.7), np.full(3, 18.837), (0.0, 0.0, 0.0))
+    params = sample_params(subject_rng(0, subject, STREAM_LATENT))
+    severities = (0.4, 1.0)
+    label_h = 16
+    sheet = Image.new("RGB", (len(severities) * 3 * res, len(DEFECT_TYPES) * (res + label_h)), "white")
+    draw = ImageDraw.Draw(sheet)
+    for r, kind in enumerate(DEFECT_TYPES):
+        for c, sev in enumerate(severities):
+            defects = sample_defects(subject_rng(1, r, STREAM_LATENT), 1.0, params, (kind,), (sev, sev))
+            s = Subject(index=subject, seed=0, latent={"params": params}, truth={"defects": defects},
+                        state=bake_head(params, defects, gen.config.grid_resolution))
+            out = gen.render(s, views, res)
+            y0 = r * (res + label_h)
+            draw.text((c * 3 * res + 4, y0 + 2), f"{kind}, severity {sev}", fill=(0, 0, 0))
+            for v in range(3):
+                img = Image.fromarray((np.clip(out.rgb[v], 0, 1) * 255 + 0.5).astype(np.uint8))
+                sheet.paste(img, ((c * 3 + v) * res, y0 + label_h))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.png")
+    sheet.save(tmp)
+    tmp.replace(path)
 
 
 def fmt(x, pct=False):
     if x is None:
         return "n/a"
-    return f"{100 * x:.1f}%" if pct else f"{x:.2f}"
+    return f"{100 * x:.1f} %" if pct else f"{x:.2f}"
+
+
+def class_table(rows: dict, auc_key: str = "auc") -> list[str]:
+    lines = ["| class -> detector | positives | TP | FP | FN | precision | recall | AUC |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for name, r in rows.items():
+        if not isinstance(r, dict):
+            continue
+        label = "any defect -> any flag" if name == "any" else f"{name} -> {MATCH[name]}"
+        lines.append(f"| {label} | {r['positives']} | {r['tp']} | {r['fp']} | {r['fn']} | {fmt(r['precision'])} | "
+                     f"{fmt(r['recall'])} | {fmt(r.get(auc_key))} |")
+    return lines
+
+
+def goals(data: dict) -> list[str]:
+    held = data["pooled"][str(data["args"]["defect_rate"])]
+    classes = {k: v["recall"] for k, v in held.items() if isinstance(v, dict) and k != "any"}
+    default = data["pooled"].get(str(data["args"]["default_rate"]), {})
+    clean = max(x for x in (held["clean_flagged_share"], default.get("clean_flagged_share")) if x is not None)
+    learn = data.get("learning", {}).get("recall_with")
+    checks = [
+        ("any-defect precision", held["any"]["precision"], GOALS["any_precision"], False),
+        ("any-defect recall", held["any"]["recall"], GOALS["any_recall"], False),
+        ("janus recall", held["janus"]["recall"], GOALS["janus_recall"], False),
+        ("lowest class recall (" + min(classes, key=lambda k: classes[k] or 0) + ")", min(v or 0 for v in classes.values()),
+         GOALS["class_recall"], False),
+        ("clean subjects flagged (worst rate)", clean, GOALS["clean_flagged"], True),
+        (f"defects left in the first 30 % of the queue after {data['args']['verdicts']} verdicts", learn,
+         GOALS["learn_recall_at_30"], False),
+    ]
+    lines = ["| goal (held-out seeds) | measured | target | met |", "|---|---:|---:|---|"]
+    for name, value, target, below in checks:
+        met = value is not None and (value <= target if below else value >= target)
+        lines.append(f"| {name} | {fmt(value)} | {'<=' if below else '>='} {target} | {'yes' if met else '**no**'} |")
+    return lines
 
 
 def write_markdown(data: dict) -> str:
     a = data["args"]
-    lines = ["# Pre-flag quality on procedural injected defects", ""]
-    lines += [f"Generated {data['when']} on {data['machine']}. Numbers are computed by "
-              f"`benchmarks/preflags_quality.py`; rerun with:", "", "```", data["command"], "```", ""]
-    lines += ["Protocol: thresholds (each detector's `Settings` in `labeling_tool/preflags/`) were chosen on a **tuning** dataset made "
-              f"with seed {a['tune_seed']}; the **held-out** numbers below come from a dataset made with seed "
-              f"{a['seed']} (same settings: procedural, protocol 360, {a['subjects']} subjects, 32 views, "
-              f"{a['resolution']} px, defect rate {a['defect_rate']}). The scorer never reads `truth/`; "
-              "only this benchmark does, to count hits.", ""]
-    lines += [f"Note: {n}" for n in data.get("notes", [])] + ([""] if data.get("notes") else [])
-    for part in ("held_out", "tuning"):
-        ev = data.get(part)
-        if not ev:
+    lines = ["# Pre-flag quality on the procedural generator's injected defects", "",
+             f"Generated {data['when']} ({data['machine'].get('cpu_model', '?')}); {data['load']}.", "",
+             "```", data["command"], "```", "",
+             f"Datasets: procedural, protocol 360, 32 views, {a['subjects']} subjects at {a['resolution']} px each. "
+             f"Thresholds were chosen looking only at {TUNED_ON}; seeds {', '.join(map(str, a['seeds']))} are held out. "
+             f"Each held-out seed is made at a {a['defect_rate']:.0%} defect rate and at the generator's default "
+             f"{a['default_rate']:.0%} (the same people, fewer defects). Severity of each defect: uniform in "
+             f"{list(ProceduralConfig().defect_severity)}.", "",
+             "Thresholds: every detector turns its measurement into a robust z-score against the dataset "
+             "(median and MAD, or a per-view baseline), and flags at its `flag_at` z; a flag therefore means "
+             "\"this far from the typical subject of this dataset\", whatever its size or seed.", "",
+             "![every injected class at severity 0.4 and 1.0: front, behind-left, behind](preflags_gallery.png)", "",
+             "## Goals", ""] + goals(data) + [""]
+    for rate, rows in data["pooled"].items():
+        lines += [f"## Held-out seeds pooled, defect rate {float(rate):.0%}", ""] + class_table(rows, "auc_min") + [
+            "", "AUC: the lowest over the held-out seeds (each seed's scores are z-scores against its own baseline). "
+            f"Clean subjects flagged: **{fmt(rows['clean_flagged_share'], True)}**.", ""]
+    lines += ["## Each dataset", "",
+              "| dataset | subjects | clean | defective | any precision | any recall | any AUC | clean flagged | subjects/s |",
+              "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for name, ev in data["datasets"].items():
+        r = ev["rows"]["any"]
+        lines.append(f"| {name} | {ev['subjects']} | {ev['clean']} | {ev['defective']} | {fmt(r['precision'])} | "
+                     f"{fmt(r['recall'])} | {fmt(r['auc'])} | {fmt(ev['clean_flagged_share'], True)} | "
+                     f"{ev['timing']['subjects_per_second']} |")
+    lines += ["", f"Speed: scoring with {a['workers']} worker(s), decode and features included, {a['resolution']} px."]
+    if data.get("learning"):
+        L = data["learning"]
+        lines += ["", "## Learning from reviewers", "",
+                  f"{L['subjects']} subjects ({L['defective']} defective) at {a['learn_resolution']} px, seed {a['learn_seed']}. "
+                  f"The first {L['verdicts']} subjects of the pre-flag queue get their true verdict ({L['bad_verdicts']} bad); "
+                  f"the rest are re-ranked by `learn_ranking` (cross-validated AUC on the reviewed: "
+                  f"{fmt((L['learned'] or {}).get('cross_validated_auc'))}).", "",
+                  f"Of the {L['left']} subjects left ({L['left_defective']} defective), the share of the defective ones "
+                  f"within the first {QUEUE_SHARE:.0%} of what is left:", "",
+                  f"| queue of the subjects left | defects within its first {QUEUE_SHARE:.0%} ({L['queue_cut']} subjects) |",
+                  "|---|---:|",
+                  f"| pre-flag order | {fmt(L['recall_without'], True)} |",
+                  f"| after learning | {fmt(L['recall_with'], True)} |", ""]
+    for name, ev in data["datasets"].items():
+        if not name.startswith("held-out") or (not ev["missed"] and not ev["clean_flagged"]):
             continue
-        title = {"held_out": f"Held-out (seed {a['seed']})",
-                 "tuning": f"Tuning set (seed {a['tune_seed']}, for reference)"}[part]
-        lines += [f"## {title}", "",
-                  f"{ev['subjects']} subjects: {ev['clean']} clean, {ev['defective']} with one injected defect "
-                  f"({', '.join(f'{k} {v}' for k, v in ev['by_type'].items())}).", "",
-                  "| injected -> detector | positives | TP | FP | FN | precision | recall | F1 |",
-                  "|---|---:|---:|---:|---:|---:|---:|---:|"]
-        for name, r in ev["rows"].items():
-            lines.append(f"| {name} | {r['positives']} | {r['tp']} | {r['fp']} | {r['fn']} | {fmt(r['precision'])} "
-                         f"| {fmt(r['recall'])} | {fmt(r['f1'])} |")
-        fpr = fmt(ev["false_positive_rate_clean"], True)
-        lines += ["", f"False-positive rate on clean subjects (any flag): **{fpr}** "
-                  f"({sum(1 for _ in ev['clean_flagged'])} of {ev['clean']}); flags on clean subjects by detector: "
-                  + ", ".join(f"{k} {v}" for k, v in ev["clean_flags_by_detector"].items()) + ".", ""]
-        if ev["defect_share_in_top_k"]:
-            lines += ["Worst-first ordering: share of defective subjects among the first k of the queue: "
-                      + ", ".join(f"k={k}: {fmt(v, True)}" for k, v in ev["defect_share_in_top_k"].items()) + ".", ""]
-        if part == "held_out":
-            if ev["missed"]:
-                lines += ["Missed defects (the matching detector's explanation):", ""]
-                lines += [f"- {m['subject']} ({', '.join(m['defects'])}): {m['why']}" for m in ev["missed"]]
-                lines += [""]
-            if ev["clean_flagged"]:
-                lines += ["Clean subjects that were flagged:", ""]
-                for c in ev["clean_flagged"]:
-                    lines.append(f"- {c['subject']}: " + "; ".join(f"{k}: {v}" for k, v in c["why"].items()))
-                lines += [""]
-    t = data["timing"]
-    lines += ["## Speed", "",
-              f"Scoring the held-out dataset ({data['held_out']['subjects']} subjects, {a['resolution']} px, "
-              "32 views): "
-              + ", ".join(f"{w} worker(s) {v['seconds']} s = **{v['subjects_per_second']} subjects/s**"
-                          + (f" (load average {v['load_before']} before)" if v.get("load_before") is not None else "")
-                          for w, v in t["dataset"].items()) + "."]
-    if t.get("big_shard"):
-        b = t["big_shard"]
-        lines += ["", f"One shard of {a['big_shard']} subjects ({b['shard_bytes'] / 1e6:.0f} MB, the held-out subjects "
-                  "repeated under new ids): " + ", ".join(
-                      f"{w} worker(s) {v['seconds']} s = {v['subjects_per_second']} subjects/s"
-                      + (f" (load average {v['load_before']} before)" if v.get("load_before") is not None else "")
-                      for w, v in b.items() if w != "shard_bytes") + "."]
-    lines += ["", "Per subject the scorer decodes all 32 masks and the colour and depth images of the 8 equator "
-              "views only; image features are computed at about 64 px.", ""]
+        lines += [f"## Misses and false alarms: {name}", ""]
+        lines += [f"- missed {m['subject']} ({m['defect']}): {m['why']}" for m in ev["missed"]]
+        for c in ev["clean_flagged"]:
+            lines.append(f"- clean {c['subject']} flagged: " + "; ".join(f"{k}: {v}" for k, v in c["why"].items()))
+        lines.append("")
+    if data.get("tuning"):
+        lines += [f"## Tuning seed {a['tune_seed']} (for reference; thresholds were chosen on it)", ""]
+        lines += class_table(data["tuning"]["rows"]) + [
+            "", f"Clean subjects flagged: {fmt(data['tuning']['clean_flagged_share'], True)}.", ""]
     lines += ["## Caveats", "",
-              "- The defects are the procedural generator's own injections; GAN failure modes look different "
-              "(e.g. janus faces with full features, soft floaters), so these numbers are an upper bound for "
-              "real data.",
-              "- Thresholds are dataset-relative (median/MAD), so precision depends on the defect rate: at the "
-              "default rate (4%) the statistics are less contaminated by defects.",
-              "- blur, empty, implausible and duplicate have no injected counterpart here; their clean-subject flag "
-              "counts above are their false positives.",
-              "- washed_out is confused by naturally low-saturation subjects (grey hair); janus needs the "
-              "yaw-0 and yaw-180 equator views and compares only those two.",
-              "- Timings are wall-clock on a shared 2-core machine; other jobs running at the same time slow them.",
-              "- Craters are searched in the upper 60% of the silhouette in the 8 equator views only; a hole seen only "
-              "from above or below is missed. Some floaters touch the head in every view and cannot be separated "
-              "from it in the mask.", ""]
+              "- These are the procedural generator's own injections, modelled on 3D-GAN failures (see the gallery); "
+              "real GAN failures vary more, so treat the numbers as what the detectors can do, not what they will do.",
+              "- Thresholds are dataset-relative: a dataset where most subjects share a defect makes it typical.",
+              "- blur, empty, implausible and duplicate have no injected counterpart; their flags on clean subjects "
+              "count as false alarms above.",
+              "- blurry_back measures how sharp the outline is against the front views'; the injected blurry backs "
+              "blur the colour inside an outline that is hardly softer, so they rank above most clean subjects but "
+              "do not flag. Texture measures tried on the tuning seeds (back against the front's crown, against "
+              "the sides, detail per unit of contrast) overlapped clean heads with plain backs.",
+              "- holes: clean heads' hairline dips reach a crater z of 7.3 on the tuning seeds, so craters flag "
+              "only from 7.5; most injected craters rank high without flagging.",
+              "- At the default rate the baselines are tighter (fewer defects in them), and the janus cue's false "
+              "alarms rise (seed 22); the face detector, an absolute score, does not move.", ""]
     return "\n".join(lines)
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", help="held-out dataset to reuse (default: generate one with --seed)")
-    ap.add_argument("--tune-data", help="tuning dataset to reuse (default: generate one with --tune-seed)")
-    ap.add_argument("--no-tune", action="store_true", help="skip the tuning-set numbers")
-    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--seeds", type=int, nargs="+", default=[21, 22], help="held-out seeds")
     ap.add_argument("--tune-seed", type=int, default=0)
-    ap.add_argument("--subjects", type=int, default=300)
-    ap.add_argument("--resolution", type=int, default=64)
-    ap.add_argument("--defect-rate", type=float, default=0.3)
-    ap.add_argument("--shard-size", type=int, default=50)
+    ap.add_argument("--subjects", type=int, default=96)
+    ap.add_argument("--resolution", type=int, default=128)
+    ap.add_argument("--defect-rate", type=float, default=0.25)
+    ap.add_argument("--learn-seed", type=int, default=23)
+    ap.add_argument("--learn-subjects", type=int, default=600, help="0 to skip the learning section")
+    ap.add_argument("--learn-resolution", type=int, default=64)
+    ap.add_argument("--verdicts", type=int, default=200)
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--big-shard", type=int, default=None,
-                    help="subjects in the one-shard timing run (default 1000; 0 to skip)")
-    ap.add_argument("--keep", help="folder to keep generated datasets in (default: a temporary folder)")
+    ap.add_argument("--keep", help="folder for the datasets, reused when run again (default: a temporary folder)")
     ap.add_argument("--out", default=str(REPORT), help="report path without extension")
     ap.add_argument("--report-only", action="store_true")
-    ap.add_argument("--timing-only", action="store_true", help="re-measure the speed section only (needs --data)")
-    ap.add_argument("--quiet", action="store_true")
-    ap.add_argument("--note", action="append", default=[], help="a line for the report's protocol section (repeatable)")
+    ap.add_argument("--gallery-only", action="store_true")
     args = ap.parse_args(argv)
     out = Path(args.out)
-    if args.big_shard is None and not args.timing_only:
-        args.big_shard = 1000
-    if args.report_only or args.timing_only:
+    if args.gallery_only:
+        gallery(GALLERY)
+        return 0
+    if args.report_only:
         data = json.loads(out.with_suffix(".json").read_text())
-        if args.timing_only:
-            if not args.data:
-                raise SystemExit("--timing-only needs --data (the held-out dataset)")
-            args.big_shard = data["args"]["big_shard"] if args.big_shard is None else args.big_shard
-            measure_timing(data, Path(args.data), args)
-            out.with_suffix(".json").write_text(json.dumps(data, indent=1, default=float) + "\n")
         out.with_suffix(".md").write_text(write_markdown(data))
         return 0
 
-    tmp = None
-    base = Path(args.keep) if args.keep else Path(tmp := tempfile.mkdtemp(prefix="preflags-quality-"))
-    gen = {}
-    held = Path(args.data) if args.data else base / f"seed{args.seed}"
-    if not args.data:
-        gen["held_out_seconds"] = round(generate(held, args.seed, args), 1)
-    tune = None
-    if not args.no_tune:
-        tune = Path(args.tune_data) if args.tune_data else base / f"seed{args.tune_seed}"
-        if not args.tune_data:
-            gen["tuning_seconds"] = round(generate(tune, args.tune_seed, args), 1)
+    base = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="preflags-quality-"))
+    default_rate = ProceduralConfig().defect_rate
+    data = {"when": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "machine": machine_info(),
+            "command": "python benchmarks/preflags_quality.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+            "args": dict(vars(args), default_rate=default_rate), "generation_seconds": {}, "datasets": {}}
+    load0 = load_average()
 
-    def settings(root):
-        s = json.loads((root / "index.json").read_text())["settings"]
-        return {k: s.get(k) for k in ("seed", "resolution", "subjects", "protocol", "generator_options")}
+    def dataset(name, seed, rate, subjects, resolution):
+        root = base / f"seed{seed}-rate{rate}-{subjects}x{resolution}"
+        print(f"{name}: {root}", flush=True)
+        data["generation_seconds"][name] = generate(root, seed, rate, subjects, resolution, args.workers)
+        return root
 
-    data = {"when": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-            "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, Python {platform.python_version()}",
-            "command": "python benchmarks/preflags_quality.py " + " ".join(
-                (f'"{a}"' if " " in a else a) for a in (argv if argv is not None else sys.argv[1:])),
-            "params": {d.name: dataclasses.asdict(d.settings) for d in preflags.DETECTORS}, "generation": gen, "notes": args.note,
-            "datasets": {"held_out": settings(held)}}
-    s = data["datasets"]["held_out"]
-    args.seed, args.resolution, args.subjects = s["seed"], s["resolution"], s["subjects"]
-    args.defect_rate = (s.get("generator_options") or {}).get("defect_rate", args.defect_rate)
-    data["held_out"] = evaluate(preflags.score_dataset(held, workers=args.workers), load_truth(held))
-    if tune is not None:
-        data["datasets"]["tuning"] = settings(tune)
-        args.tune_seed = data["datasets"]["tuning"]["seed"]
-        data["tuning"] = evaluate(preflags.score_dataset(tune, workers=args.workers), load_truth(tune))
-    measure_timing(data, held, args)
-    data["args"] = {"seed": args.seed, "tune_seed": args.tune_seed, "subjects": args.subjects,
-                    "resolution": args.resolution, "defect_rate": args.defect_rate, "big_shard": args.big_shard}
+    tune = dataset("tuning", args.tune_seed, args.defect_rate, args.subjects, args.resolution)
+    data["tuning"] = evaluate(scored(tune, args.workers)[0], load_truth(tune))
+    for rate in (args.defect_rate, default_rate):
+        evals = []
+        for seed in args.seeds:
+            name = f"held-out seed {seed}, rate {rate:.0%}"
+            root = dataset(name, seed, rate, args.subjects, args.resolution)
+            ev = evaluate(scored(root, args.workers)[0], load_truth(root))
+            data["datasets"][name] = ev
+            evals.append(ev)
+        data.setdefault("pooled", {})[str(rate)] = pooled(evals)
+    if args.learn_subjects:
+        root = dataset("learning", args.learn_seed, args.defect_rate, args.learn_subjects, args.learn_resolution)
+        report, thumbs = scored(root, args.workers)
+        data["learning"] = learning(report, thumbs, load_truth(root), args.verdicts)
+    gallery(GALLERY)
+    m = data["machine"]
+    data["load"] = (f"load average {load0} before and {load_average()} after the run on {m.get('usable_cpus')} CPUs, "
+                    f"nice {m.get('nice', 0)}")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.with_suffix(".json").write_text(json.dumps(data, indent=1, default=float) + "\n")
     out.with_suffix(".md").write_text(write_markdown(data))
     print(out.with_suffix(".md").read_text())
-    if tmp and not args.keep:
-        import shutil
-        shutil.rmtree(tmp, ignore_errors=True)
     return 0
 
 

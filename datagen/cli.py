@@ -47,6 +47,11 @@ def build_parser() -> OneLineParser:
     s.add_argument("--num-shards", type=int, default=1, help="split the shards over N jobs; job K writes shards s with s %% N == K")
     s.add_argument("--resume", action="store_true", help="skip complete shards, redo partial ones")
     s.add_argument("--defect-rate", type=float, default=None, help="procedural: fraction of subjects with an injected defect (default 0.04)")
+    s.add_argument("--defect-types", default=None, metavar="A,B",
+                   help="procedural: the defect classes to draw from (default all: janus, flat_back, haze, seam, "
+                        "blurry_back, hole, floaters, washed_out)")
+    s.add_argument("--defect-severity", default=None, metavar="LO,HI",
+                   help="procedural: severity range of injected defects, within [0, 1] (default 0.3,1)")
     s.add_argument("--background", default=None,
                    help="white, black, grey or R,G,B (procedural default white); GANs also 'own' (default)")
     s.add_argument("--truncation", type=float, default=None, help="GANs: truncation psi (default 0.7)")
@@ -91,6 +96,22 @@ def _sample(args) -> int:
         if not 0.0 <= args.defect_rate <= 1.0:
             raise UserError("--defect-rate must be between 0 and 1")
         options["defect_rate"] = args.defect_rate
+    if args.defect_types is not None:
+        from .generators.procedural import DEFECT_TYPES
+        kinds = [k.strip() for k in args.defect_types.split(",") if k.strip()]
+        unknown = [k for k in kinds if k not in DEFECT_TYPES]
+        if not kinds or unknown:
+            raise UserError(f"--defect-types: unknown {', '.join(unknown) or '(none given)'}; choose from "
+                            f"{', '.join(DEFECT_TYPES)}")
+        options["defect_types"] = kinds
+    if args.defect_severity is not None:
+        try:
+            lo, hi = (float(x) for x in args.defect_severity.split(","))
+        except ValueError:
+            lo = hi = float("nan")
+        if not 0.0 <= lo <= hi <= 1.0:
+            raise UserError("--defect-severity must be LO,HI with 0 <= LO <= HI <= 1")
+        options["defect_severity"] = [lo, hi]
     if args.background is not None:
         bg = parse_background(args.background, allow_own=gan)
         options["background"] = bg if isinstance(bg, str) else list(bg)

@@ -197,7 +197,7 @@ def _pool_task(spec: JobSpec, shard: int) -> dict:
 
 
 def _run_local(spec: JobSpec, shards: list[int], workers: int, bar) -> None:
-    if workers == 1 or len(shards) == 1:
+    if workers == 1 or len(shards) <= 1:  # (none left: a resumed dataset that was complete)
         for s in shards:
             write_shard(spec, s, progress=bar.update)
         return

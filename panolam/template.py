@@ -66,21 +66,27 @@ class _TypicalRng:
         return 0 if p is None else int(np.argmax(p))
 
 
-def _head_sdf(points: np.ndarray) -> np.ndarray:
-    """Signed distance (world units) of the neutral procedural head, neck capped at NECK_CUT_Y.
-
-    The neutral head is ``sample_params`` at mid-range values with the modal choices: short hair,
-    no glasses, no cap; no defects.
-    """
-    from datagen.generators.procedural import head_field, sample_params
+def neutral_head_params() -> dict:
+    """The procedural generator's ``sample_params`` at mid-range values with the modal choices, then
+    a short crop, no accessories or facial hair, and no shoulders: the head the template is made of."""
+    from datagen.generators.procedural import sample_params
 
     params = sample_params(_TypicalRng())
-    assert params["hair_style"] == "short" and not params["glasses"] and not params["cap"]
+    params.update(hair_style="crop", hair_thickness=0.014, hair_length=0.0, glasses=False, cap=False,
+                  facial_hair="none", torso=False)
+    return params
+
+
+def _head_sdf(points: np.ndarray) -> np.ndarray:
+    """Signed distance (world units) of the neutral procedural head, neck capped at NECK_CUT_Y."""
+    from datagen.generators.procedural import head_field
+
+    params = neutral_head_params()
     out = np.empty(len(points))
     with torch.no_grad():
         for s in range(0, len(points), 1 << 18):
             p = torch.from_numpy(points[s:s + (1 << 18)].astype(np.float32))
-            out[s:s + len(p)] = head_field(p, params, [])[0].double().numpy()
+            out[s:s + len(p)] = head_field(p, params, [], colour=False)[0].double().numpy()
     return np.maximum(out, NECK_CUT_Y - points[:, 1])
 
 

@@ -162,6 +162,13 @@ def test_rerun_without_resume_is_refused(tiny_dataset):
         run_sample(tiny_spec(tiny_dataset), progress=False)
 
 
+def test_resuming_a_complete_dataset_with_workers_does_nothing(tiny_dataset):
+    before = {p: p.stat().st_mtime_ns for p in tiny_dataset.rglob("*")}
+    summary = run_sample(tiny_spec(tiny_dataset), resume=True, workers=2, progress=False)
+    assert summary["shards_written"] == 0 and summary["images"] == 0
+    assert {p: p.stat().st_mtime_ns for p in tiny_dataset.rglob("*")} == before
+
+
 def test_other_settings_into_the_same_folder_are_refused(tiny_dataset):
     with pytest.raises(UserError, match="resolution"):
         run_sample(tiny_spec(tiny_dataset, resolution=48), resume=True, progress=False)

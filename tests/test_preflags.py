@@ -59,15 +59,17 @@ def _cylinder_hit(o, d, c, radius, y0, y1):
     return np.where((disc >= 0) & (t > 0) & (y >= y0) & (y <= y1), t, np.inf)
 
 
-def make_head(rng, key, views=VIEWS, protocol="360", defect=None):
+def make_head(rng, key, views=VIEWS, protocol="360", defect=None, hair_rgb=None):
     """A SubjectSample of an analytic head; defect in (None, 'janus', 'floaters', 'hole', 'see_through',
-    'flat_back', 'seam')."""
+    'flat_back', 'seam'); ``hair_rgb`` replaces the drawn hair colour."""
     radii = np.array([0.19, 0.23, 0.22]) * rng.uniform(0.95, 1.05, 3)
     tone = rng.uniform(0.45, 1.0)
     skin = (np.array([0.97, 0.80, 0.69]) * (1 - tone) + np.array([0.33, 0.20, 0.13]) * tone)
     skin = skin * rng.uniform(0.98, 1.02, 3)
     hair = np.array([[0.05, 0.04, 0.04], [0.17, 0.10, 0.06], [0.36, 0.23, 0.13], [0.50, 0.20, 0.09],
                      [0.82, 0.66, 0.40]][rng.integers(5)]) * rng.uniform(0.9, 1.1)
+    if hair_rgb is not None:
+        hair = np.asarray(hair_rgb, dtype=np.float64)
     light = np.array([rng.uniform(-0.4, 0.4), 0.6, 0.8])
     light /= np.linalg.norm(light)
     hairline = rng.uniform(0.03, 0.1)
@@ -145,7 +147,7 @@ def make_head(rng, key, views=VIEWS, protocol="360", defect=None):
                 ci = (centre * right).sum() / HALF, (centre * up).sum() / HALF
                 r2 = ((uu / HALF - ci[0]) ** 2 + (vv / HALF - ci[1]) ** 2) / 0.22 ** 2
                 bowl = m & (r2 < 1) & (which == 0)
-                dep = np.where(bowl, dep + 0.06 * vis * (1 - r2), dep)
+                dep = np.where(bowl, dep + 0.12 * vis * (1 - r2), dep)  # a gross crater (the flag is for those)
                 col[bowl] *= 0.45
         a8 = m.astype(np.float64)
         if defect == "see_through" and abs(yw - 90) < 1:
@@ -303,6 +305,14 @@ def test_see_through_hole(clean_heads):
 def test_washed_out(clean_heads):
     bad = washed(make_head(np.random.default_rng(105), "subj99999994"))
     _check(clean_heads, bad, "washed_out")
+
+
+def test_grey_hair_is_not_washed_out(clean_heads):
+    grey = [make_head(np.random.default_rng(200 + k), f"subj9999990{k}", hair_rgb=[0.78, 0.77, 0.76]) for k in range(2)]
+    by_key, _ = score_samples(clean_heads + grey)
+    assert all("washed_out" not in by_key[g.key]["flags"] for g in grey), [by_key[g.key]["detectors"]["washed_out"] for g in grey]
+    by_key, _ = score_samples(clean_heads + [washed(grey[0])])
+    assert "washed_out" in by_key[grey[0].key]["flags"]
 
 
 def test_blur(clean_heads):

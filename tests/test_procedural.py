@@ -4,7 +4,7 @@ import torch
 
 from datagen.cameras import ViewSet, named_views, sample_views
 from datagen.generators.base import STREAM_CAMERAS, STREAM_LATENT, subject_rng
-from datagen.generators.procedural import (DEFECT_TYPES, HAIR_STYLES, ProceduralConfig, ProceduralHeads,
+from datagen.generators.procedural import (DEFECT_TYPES, HAIR_STYLES, SKIN_TONES, ProceduralConfig, ProceduralHeads,
                                            laplace_density, sample_defects, sample_params)
 
 GEN = ProceduralHeads(ProceduralConfig(grid_resolution=64, defect_rate=0.0))
@@ -48,8 +48,39 @@ def test_subjects_are_diverse():
     assert tones.max() - tones.min() > 0.35
     assert 0.08 < np.mean([p["glasses"] for p in params]) < 0.35
     assert 0.04 < np.mean([p["cap"] for p in params]) < 0.25
-    assert len({p["hair_colour"] for p in params}) >= 6
-    assert any(p["hair_style"] == "long" and p["hair_length"] > 0.3 for p in params)
+    assert len({p["hair_colour"] for p in params}) >= 8
+    assert all(p["hair_length"] < -0.45 for p in params if p["hair_style"] == "long")  # past the shoulders
+    for key in ("face_width", "jaw_width", "chin_width", "nose_width", "nose_length", "mouth_width", "eye_width",
+                "eye_spacing", "brow_thickness", "ear_size"):
+        values = np.array([p[key] for p in params])
+        assert values.max() > 1.3 * values.min(), key
+
+
+def attribute_shares(params, key, value=None):
+    from collections import Counter
+    counts = Counter(value(p) if value else p[key] for p in params)
+    return {k: v / len(params) for k, v in counts.items()}
+
+
+def test_attribute_coverage_over_a_thousand_seeds():
+    """Every hair style, natural hair colour, skin tone bracket, sex and age bracket is at least 3 % of
+    subjects; unnatural (dyed) hair is rare on purpose; grey hair comes with age."""
+    params = [sample_params(subject_rng(0, i, STREAM_LATENT)) for i in range(1000)]
+    for key in ("hair_style", "skin_tone", "sex", "age_bracket", "neckline", "iris"):
+        shares = attribute_shares(params, key)
+        assert min(shares.values()) >= 0.03 and len(shares) >= 2, (key, shares)
+    assert set(attribute_shares(params, "hair_style")) == set(HAIR_STYLES)
+    assert set(attribute_shares(params, "skin_tone")) == set(SKIN_TONES)
+    colours = attribute_shares(params, "hair_colour")
+    assert colours.get("dyed", 0) <= 0.03
+    assert sum(v >= 0.03 for k, v in colours.items() if k != "dyed") >= 7
+    for key in ("glasses", "cap", "makeup"):
+        assert 0.03 <= np.mean([p[key] for p in params]) <= 0.5, key
+    assert 0.03 <= np.mean([p["facial_hair"] != "none" for p in params]) <= 0.5
+    grey = [p["hair_colour"] in ("grey", "white") for p in params]
+    age = np.array([p["age"] for p in params])
+    assert np.mean(np.array(grey)[age > 60]) > 3 * max(np.mean(np.array(grey)[age < 35]), 0.01)
+    assert all(p["facial_hair"] == "none" for p in params if p["sex"] == "female")
 
 
 def test_defect_rate_and_types():
@@ -74,10 +105,15 @@ def test_head_is_framed_with_background_around(subject):
     assert_clean(out)
     c = 32
     assert (out.alpha[:, c - 4:c + 4, c - 4:c + 4] > 0.99).all()  # the head fills the centre of every view
-    corners = out.alpha[:, [0, 0, -1], [0, -1, 0]]
+    corners = out.alpha[:, [0, 0], [0, -1]]  # the top corners are background
     assert (corners < 1e-3).all()
     np.testing.assert_allclose(out.rgb[:, 0, 0], np.tile(WHITE, (4, 1)), atol=1e-6)
     assert 0.25 < out.alpha.mean() < 0.85
+    # Neck and shoulders reach the bottom of the frame, as in FFHQ-style crops: most of the bottom
+    # row is covered seen from the front and the back, and the shoulders are wider than the head.
+    assert (out.alpha[[0, 2], -1].mean(-1) > 0.8).all()
+    head_row, shoulder_row = out.alpha[0, 20] > 0.5, out.alpha[0, -3] > 0.5
+    assert shoulder_row.sum() > 1.3 * head_row.sum()
     # The front of the head is between 0.1 and 0.45 units in front of the origin.
     d = out.depth[0, c - 2:c + 2, c - 2:c + 2]
     assert (d > 2.7 - 0.45).all() and (d < 2.7 - 0.1).all()
@@ -90,18 +126,76 @@ def test_alpha_is_binary_inside_and_outside(subject):
     assert np.mean((a > 0.01) & (a < 0.99)) < 0.08  # only silhouette pixels are fractional
 
 
-def test_janus_puts_a_face_on_the_back():
-    base = ProceduralHeads(ProceduralConfig(grid_resolution=64, defect_rate=0.0))
-    s = base.sample_subject(0, 4)
-    janus = base.sample_subject(0, 4)
+def _with_defect(index, defect, res=128, yaw=(0.0, 180.0)):
+    """(clean, defective) renders of one subject (grid 128: eyes and lips need it) at 128 px."""
+    from datagen.generators.base import Subject
     from datagen.generators.procedural import bake_head
 
-    janus.state = bake_head(janus.latent["params"], [{"type": "janus"}], 64)
-    v = views([0, 180])
-    a, b = base.render(s, v, 64), base.render(janus, v, 64)
-    front_diff = np.abs(a.rgb[0] - b.rgb[0]).mean()
-    back_diff = np.abs(a.rgb[1] - b.rgb[1]).mean()
-    assert back_diff > 5 * max(front_diff, 1e-3)
+    params = sample_params(subject_rng(0, index, STREAM_LATENT))
+    gen = ProceduralHeads(ProceduralConfig(grid_resolution=128))
+    out = []
+    for d in ([], [defect]):
+        s = Subject(index=index, seed=0, latent={"params": params}, truth={"defects": d}, state=bake_head(params, d, 128))
+        out.append(gen.render(s, views(list(yaw)), res))
+        assert_clean(out[-1])
+    return out
+
+
+def test_janus_is_a_face_a_face_detector_finds_on_the_back():
+    from labeling_tool.preflags.janus import NO_FACE, best_face
+
+    clean, janus = _with_defect(2, {"type": "janus", "severity": 1.0})
+    u8 = lambda rgb: (rgb * 255 + 0.5).astype(np.uint8)  # noqa: E731
+    assert best_face(u8(clean.rgb[0])) > 0 and best_face(u8(janus.rgb[0])) > 0  # the real face, both
+    assert best_face(u8(clean.rgb[1])) == NO_FACE
+    assert best_face(u8(janus.rgb[1])) > 0                                      # a second one behind
+    assert np.abs(clean.rgb[0] - janus.rgb[0]).mean() < 2e-3
+
+
+def test_flat_back_brings_the_back_of_the_head_closer():
+    clean, flat = _with_defect(3, {"type": "flat_back", "severity": 1.0}, yaw=(180.0,))
+    c = slice(52, 76)  # the middle of the back of the head at 128 px
+    solid = (clean.alpha[0, c, c] > 0.99) & (flat.alpha[0, c, c] > 0.99)
+    gained = flat.depth[0, c, c][solid] - clean.depth[0, c, c][solid]
+    assert np.median(gained) > 0.08  # at least 0.12 head units (0.098 world) cut off, hair included
+
+
+def test_haze_is_partly_transparent_material_away_from_the_head():
+    from scipy import ndimage as ndi
+    clean, hazy = _with_defect(5, {"type": "haze", "severity": 1.0, "wisps": sample_defects(
+        np.random.default_rng(3), 1.0, {}, ("haze",), (1.0, 1.0))[0]["wisps"]}, yaw=(0.0, 90.0, 180.0))
+
+    def far_partial(out):
+        solid = out.alpha > 0.9
+        far = np.stack([ndi.distance_transform_edt(~m) > 3 for m in solid])
+        return int(((out.alpha > 0.04) & (out.alpha < 0.75) & far).sum())
+    n_clean, n_hazy = far_partial(clean), far_partial(hazy)
+    assert n_clean <= 10 and n_hazy > 10 * max(n_clean, 5), (n_clean, n_hazy)
+
+
+def test_seam_is_a_step_in_colour_down_the_back():
+    defect = {"type": "seam", "severity": 1.0, "x": 0.0, "side": 1.0}
+    clean, seam = _with_defect(12, defect, yaw=(180.0,))
+    rows = slice(30, 70)
+    ratio = seam.rgb[0, rows].mean(-1) / np.maximum(clean.rgb[0, rows].mean(-1), 1e-3)
+    solid = (clean.alpha[0, rows] > 0.99).all(0)
+    # Seen from behind, +x is on the image's left: that half darkens by about 40 %, the other keeps its colour.
+    left, right = ratio[:, 40:60][:, solid[40:60]], ratio[:, 68:88][:, solid[68:88]]
+    assert np.median(left) < 0.7 and abs(np.median(right) - 1.0) < 0.03
+
+
+def test_blurry_back_smears_the_back_and_leaves_the_face_sharp():
+    clean, blurry = _with_defect(1, {"type": "blurry_back", "severity": 1.0})
+
+    from scipy import ndimage as ndi
+
+    def detail(out, v):
+        """Mean horizontal colour step inside the silhouette (3 px in from its edge)."""
+        inside = ndi.binary_erosion(out.alpha[v] > 0.99, iterations=3)
+        step = np.abs(np.diff(out.rgb[v].mean(-1), axis=1))
+        return float(step[inside[:, 1:] & inside[:, :-1]].mean())
+    assert detail(blurry, 1) < 0.6 * detail(clean, 1), (detail(blurry, 1), detail(clean, 1))
+    assert abs(detail(blurry, 0) - detail(clean, 0)) < 0.05 * detail(clean, 0)
 
 
 @pytest.mark.parametrize("case", [
@@ -156,3 +250,61 @@ def test_protocol_views_render(subject):
     out = GEN.render(subject, v, 32)
     assert_clean(out)
     assert out.rgb.shape == (4, 32, 32, 3) and out.alpha.shape == (4, 32, 32)
+
+
+def brim_columns(alpha, gap=3):
+    """{column: rows} of the columns whose first opaque band (the brim, from above) has background below it."""
+    out = {}
+    for c in range(alpha.shape[1]):
+        col = alpha[:, c]
+        solid = np.flatnonzero(col > 0.5)
+        if not solid.size:
+            continue
+        end = solid[0]
+        while end + 1 < len(col) and col[end + 1] > 0.5:
+            end += 1
+        below = col[end + 2:end + 2 + gap]
+        if below.size == gap and (below < 0.02).all() and end < len(col) // 2:
+            out[c] = col[:end + 2 + gap]
+    return out
+
+
+def cap_params(index=5):
+    params = sample_params(subject_rng(0, index, STREAM_LATENT))
+    params.update(cap=True, glasses=False, hair_style="crop", hair_thickness=0.014)
+    return params
+
+
+@pytest.mark.parametrize("resolution", [128, 256])
+def test_cap_brim_seen_edge_on_is_one_clean_edge(resolution):
+    """A brim seen edge-on (from the side) is one opaque band with at most one partial pixel at each
+    side: no ghost copies above or below it, no ragged edge (its top and thickness change by at most
+    a pixel from column to column)."""
+    from datagen.generators.procedural import bake_head
+
+    gen = ProceduralHeads(ProceduralConfig(grid_resolution=128, defect_rate=0.0))
+    subject = gen.sample_subject(0, 0)
+    subject.state = bake_head(cap_params(), [], 128)
+    alpha = gen.render(subject, views([90]), resolution).alpha[0]
+    cols = brim_columns(alpha)
+    assert len(cols) >= resolution // 40, "no brim sticks out in front of the face"
+    tops, widths = [], []
+    for c, col in cols.items():
+        solid = np.flatnonzero(col > 0.5)
+        assert solid[-1] - solid[0] + 1 == solid.size, f"column {c}: more than one band"
+        # One peak: alpha rises monotonically to the band and falls monotonically after it (a ghost
+        # copy would be a second bump), within 2 px of it (the Laplace density's falloff along rays
+        # that skim the brim), with few partial pixels.
+        assert (np.diff(col[:solid[0] + 1]) >= -1e-3).all() and (np.diff(col[solid[-1]:]) <= 1e-3).all(), \
+            f"column {c}: a ghost beside the brim"
+        seen = np.flatnonzero(col > 0.02)
+        assert seen[0] >= solid[0] - 2 and seen[-1] <= solid[-1] + 2, f"column {c}: a halo beside the brim"
+        partial = (col > 0.02) & (col < 0.98)
+        assert partial[:solid[0]].sum() <= 2 and partial[solid[-1] + 1:].sum() <= 2, f"column {c}: a soft edge"
+        tops.append(solid[0])
+        widths.append(solid.size)
+    # Within a pixel at 128 px (two at 256) between neighbouring columns, leaving out the outermost
+    # column, where the rounded tip of the brim turns.
+    step = max(1, resolution // 128)
+    assert np.abs(np.diff(tops[1:])).max(initial=0) <= step and np.abs(np.diff(widths[1:])).max(initial=0) <= step
+    assert max(widths) <= resolution // 10  # a thin brim (tilted down a little), not a slab

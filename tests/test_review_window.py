@@ -606,10 +606,10 @@ def test_real_window_session_typed_with_xdotool(xvfb, two_page_dataset, tmp_path
         key("z", 3)                             # undo names subject 1
         key("5", 4)                             # 1 bad (other)
         grid = settled()
-        surface = key_changes_screen("v", grid, least=0.1)      # 3D on: the grid of views gives way to a head
+        surface = key_changes_screen("v", grid, least=0.04)     # 3D on: the grid of views gives way to a head
         middle = surface[150:500, 350:650]      # the window is at the screen's top left, 1000x600
         assert (np.abs(middle - BACKGROUND).sum(-1) > 40).mean() > 0.2   # the head, in the middle
-        views = key_changes_screen("v", surface, least=0.1)     # and back to the views
+        views = key_changes_screen("v", surface, least=0.04)    # and back to the views
         assert np.abs(views - grid).sum(-1).mean() < 5          # as they were (the notice line aside)
         triage = key_changes_screen("t", views, least=0.1)
         flipped = key_changes_screen("space", triage, least=0.0005)   # cell 2 (no verdict) flips to bad: framed red

@@ -20,8 +20,9 @@ def make_generator(name: str, checkpoint: str | None = None, options: dict | Non
         unknown = sorted(set(options) - set(known))
         if unknown:
             raise UserError(f"unknown procedural option(s): {', '.join(unknown)}")
-        if "background" in options:
-            options["background"] = tuple(options["background"])
+        for key in ("background", "defect_types", "defect_severity"):
+            if key in options:
+                options[key] = tuple(options[key])
         return ProceduralHeads(ProceduralConfig(**options))
     if name in GANS:
         from ..gans.checkpoint import OFFICIAL_SOURCES

@@ -27,8 +27,8 @@ class Haze(Detector):
         low: float = 0.04          # alpha range of "partial" pixels
         high: float = 0.75
         distance: float = 3.0      # px at 64 px from the solid silhouette
-        share: float = 0.01        # haze area / silhouette area in the worst view
-        share_sat: float = 0.08
+        share: float = 0.003       # haze area / silhouette area in the worst view (clean heads: 0)
+        share_sat: float = 0.05
 
     def threshold(self):
         return self.settings.share

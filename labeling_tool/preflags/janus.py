@@ -132,10 +132,11 @@ class Janus(Detector):
 
     @dataclass(frozen=True)
     class Settings:
-        z: float = 1.5          # mean of the edge, face-colour and nose-bump robust z-scores
+        z: float = 2.5          # mean of the edge, face-colour and nose-bump robust z-scores (tuning seeds:
+                                # symmetric clean backs up to 2.1; the face detector finds most janus faces)
         z_sat: float = 4.0
-        face: float = 0.0       # face-detector score at which a back view's face flags (dlib's own threshold)
-        face_sat: float = 1.0
+        face: float = -0.5      # face-detector score at which a back view's face flags (below dlib's own 0:
+        face_sat: float = 0.5   # partial faces score -0.4 to 0; hair and scalp, when anything, -0.7 or less)
 
     def __init__(self, settings=None):
         super().__init__(settings)
@@ -166,7 +167,8 @@ class Janus(Detector):
     def baseline(self, measured):
         jan = [m for m in measured if m and "na" not in m]
         return {"sim": robust([j["sim"] for j in jan], 0.05), "colour": robust([j["colour"] for j in jan], 0.05),
-                "relief": robust([math.log(j["relief"] + 1e-4) for j in jan], 0.05)}
+                # at least a factor 1.6 in relief: where most backs are smooth the log's MAD is about 0
+                "relief": robust([math.log(j["relief"] + 1e-4) for j in jan], 0.5)}
 
     def score(self, j, base, index, keys):
         if j is None or "na" in j:
