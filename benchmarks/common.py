@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from datagen.cameras import ViewSet
 from datagen.pipeline import software_info
 
 HERE = Path(__file__).resolve().parent
@@ -42,6 +43,12 @@ def machine_info() -> dict:
             "git_revision": software_info()["git_revision"], "load_average": list(os.getloadavg()),
             "nice": os.nice(0),
             "date": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+
+
+def equator_views(yaw) -> ViewSet:
+    """Views at these yaws (degrees) on the equator at radius 2.7 and FOV 18.837 (EG3D's), looking at the origin."""
+    n = len(yaw)
+    return ViewSet("equator", np.asarray(yaw, float), np.zeros(n), np.full(n, 2.7), np.full(n, 18.837), (0.0, 0.0, 0.0))
 
 
 def load_average() -> float | None:

@@ -40,7 +40,7 @@ HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 sys.path.insert(0, str(REPO))
 
-from benchmarks.common import load_average, machine_info  # noqa: E402
+from benchmarks.common import equator_views, load_average, machine_info  # noqa: E402
 from datagen.generators.procedural import DEFECT_TYPES, ProceduralConfig  # noqa: E402
 from labeling_tool.preflags import pipeline  # noqa: E402
 from labeling_tool.preflags.learn import auc, learn_ranking  # noqa: E402
@@ -85,9 +85,7 @@ def scored(root: Path, workers: int) -> tuple[dict, list]:
     seconds = time.perf_counter() - t0
     report["timing"] = {"seconds": round(seconds, 2), "subjects_per_second": round(len(report["subjects"]) / seconds, 1),
                         "workers": workers, "load_before": None}
-    thumbs = {r["key"]: (r["measured"].get("duplicate") or {}).get("thumb") for _, r in extracted["records"]
-              if "error" not in r}
-    return report, [thumbs.get(s["subject"]) for s in report["subjects"]]
+    return report, pipeline.thumbnails(extracted, report)
 
 
 def prf(tp: int, fp: int, fn: int) -> dict:
@@ -168,13 +166,11 @@ def gallery(path: Path, subject: int = 2, res: int = 128) -> None:
     """Every injected class at severity 0.4 and 1.0 on one subject: front, yaw 135 and back views."""
     from PIL import Image, ImageDraw
 
-    from datagen.cameras import ViewSet
     from datagen.generators.base import STREAM_LATENT, Subject, subject_rng
     from datagen.generators.procedural import ProceduralHeads, bake_head, sample_defects, sample_params
 
     gen = ProceduralHeads(ProceduralConfig(defect_rate=0.0))
-    yaw = np.array([0.0, 135.0, 180.0])
-    views = ViewSet("360", yaw, np.zeros(3), np.full(3, 2.7), np.full(3, 18.837), (0.0, 0.0, 0.0))
+    views = equator_views((0.0, 135.0, 180.0))
     params = sample_params(subject_rng(0, subject, STREAM_LATENT))
     severities = (0.4, 1.0)
     label_h = 16

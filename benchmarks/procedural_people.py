@@ -40,8 +40,8 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from benchmarks.common import load_average, machine_info  # noqa: E402
-from datagen.cameras import ViewSet, sample_views  # noqa: E402
+from benchmarks.common import equator_views, load_average, machine_info  # noqa: E402
+from datagen.cameras import sample_views  # noqa: E402
 from datagen.generators import procedural  # noqa: E402
 from datagen.generators.base import STREAM_CAMERAS, STREAM_LATENT, subject_rng  # noqa: E402
 
@@ -67,11 +67,6 @@ def generator_at(commit: str):
     sys.modules[spec.name] = module  # dataclasses look their module up there
     exec(compile(src, f"{commit}:datagen/generators/procedural.py", "exec"), module.__dict__)
     return module
-
-
-def frontal(yaw=(0.0,)) -> ViewSet:
-    n = len(yaw)
-    return ViewSet("frontal", np.asarray(yaw, float), np.zeros(n), np.full(n, 2.7), np.full(n, 18.837), (0.0, 0.0, 0.0))
 
 
 def u8(rgb) -> np.ndarray:
@@ -113,8 +108,8 @@ def identity(n: int, faces: Faces, generators: dict) -> dict:
         found, embeddings, control = 0, [], []
         for i in range(n):
             subject = gen.sample_subject(SEED, i)
-            found += faces.found(u8(gen.render(subject, frontal(), 128).rgb[0]))
-            big = gen.render(subject, frontal((0.0, 10.0)), 256).rgb
+            found += faces.found(u8(gen.render(subject, equator_views((0.0,)), 128).rgb[0]))
+            big = gen.render(subject, equator_views((0.0, 10.0)), 256).rgb
             e0, e1 = faces.embed(u8(big[0])), faces.embed(u8(big[1]))
             embeddings.append(e0)
             if e0 is not None and e1 is not None:
@@ -150,7 +145,7 @@ def contact_sheet(path: Path, n: int = SHEET_SUBJECTS, res: int = 128) -> None:
     rows = (n + cols - 1) // cols
     sheet = Image.new("RGB", (cols * res, rows * 2 * res), "white")
     for i in range(n):
-        out = gen.render(gen.sample_subject(SEED, i), frontal((0.0, 180.0)), res)
+        out = gen.render(gen.sample_subject(SEED, i), equator_views((0.0, 180.0)), res)
         r, c = divmod(i, cols)
         sheet.paste(Image.fromarray(u8(out.rgb[0])), (c * res, r * 2 * res))
         sheet.paste(Image.fromarray(u8(out.rgb[1])), (c * res, r * 2 * res + res))
@@ -203,7 +198,7 @@ def markdown(res: dict) -> str:
         lines.append(f"* **{key}**: " + ", ".join(f"{k} {100 * v:.1f} %" for k, v in shares.items()))
     lines += ["", "Unnatural (dyed) hair is rare on purpose (2 % of draws); grey and white hair come with age; "
               "facial hair only on male subjects.", "",
-              f"## Contact sheet", "", f"![32 subjects, front and back]({NAME}.png)", ""]
+              "## Contact sheet", "", f"![32 subjects, front and back]({NAME}.png)", ""]
     return "\n".join(lines)
 
 

@@ -665,14 +665,13 @@ def _hairline(p, P, nape, front=None, ear_gap=True):
     return 0.7 * (_interp(az, xs, ys) - y)
 
 
-def _hair(p, P, colour=True):
-    """Hair of the subject's style: (sdf, rgb), or None when bald without hair at the sides."""
+def _hair(p, P):
+    """The signed distance of the subject's hair, or None when bald (its colour: ``_hair_rgb``)."""
     style = P["hair_style"]
     cc, (rx, ry, rz) = _cranium(P)
     cy = cc[1]
     th = P["hair_thickness"]
     E = P["eye_height"]
-    flow_y = True
     if style == "bald":
         return None
     if style == "afro":
@@ -680,7 +679,6 @@ def _hair(p, P, colour=True):
         curls = 0.008 * torch.sin(p @ _t([70.0, 40.0, 20.0]) + 1.0) * torch.sin(p @ _t([-30.0, 75.0, 45.0])) \
             + 0.005 * torch.sin(p @ _t(np.asarray(P["hair_seed"][2]) * 55.0))
         hair = smax(big + curls, _hairline(p, P, -0.14), 0.02)
-        flow_y = False
     else:
         nape = {"crop": -0.12, "ponytail": -0.1, "bun": -0.1}.get(style, -0.15)
         front = P["hairline_height"]
@@ -729,7 +727,7 @@ def _hair(p, P, colour=True):
             part_x = P["hair_part"] if style == "side_part" else P["hair_part"] * 0.3
             groove = _gauss(p[:, 0] - part_x, 0.006) * _smoothstep(-0.05, 0.1, p[:, 2]) * _smoothstep(cy + 0.1, cy + 0.2, p[:, 1])
             hair = hair + 0.006 * groove
-    return hair, None
+    return hair
 
 
 def _hair_rgb(q, P):
@@ -841,7 +839,7 @@ def _wisp_sdf(p, wisp, cc, reach):
     side /= np.linalg.norm(side)
     axis = math.cos(turn) * side + math.sin(turn) * np.cross(d0, side)
     knots = []
-    for i, a in enumerate(np.linspace(0.0, wisp["arc"], 9)):
+    for a in np.linspace(0.0, wisp["arc"], 9):
         # Rodrigues rotation of d0 about ``axis``; the strand drifts outward and back along its length.
         d = d0 * math.cos(a) + np.cross(axis, d0) * math.sin(a) + axis * (axis @ d0) * (1 - math.cos(a))
         knots.append(np.asarray(cc) + d * (reach + wisp["lift"] * (1.0 + 0.3 * math.sin(2.5 * a + turn))))
@@ -902,7 +900,6 @@ def _head_field_local(p: torch.Tensor, P: dict, defects: list[dict], colour=True
         sdf = torch.minimum(sdf, beard)
     hair = _hair(p, P)
     if hair is not None:
-        hair = hair[0]
         if hair_window is not None:
             hair = smax(hair, -hair_window, 0.01)
         sdf_parts.append((hair, lambda q, sel: _hair_rgb(q, P)))
@@ -1037,10 +1034,12 @@ def bake_head(params: dict, defects: list[dict], res: int) -> HeadGrid:
     # Colour where the renderer can see it: the voxels whose trilinear cells touch the surface, and
     # the inside where the box cuts the body.
     box_cut = on_face[band_idx]
-    sdf_band, rgb_band = head_field(points[band_idx], params, defects,
-                                    colour=lambda d: (d.abs() < 2.5 * fine_voxel) | (box_cut & (d < 0)))
+
+    def visible(d):
+        return (d.abs() < 2.5 * fine_voxel) | (box_cut & (d < 0))
+    sdf_band, rgb_band = head_field(points[band_idx], params, defects, colour=visible)
     sdf[band_idx] = sdf_band
-    coloured = (sdf_band.abs() < 2.5 * fine_voxel) | (box_cut & (sdf_band < 0))
+    coloured = visible(sdf_band)
     near = band_idx[coloured]
     rgb_near = rgb_band[coloured]
     pts = points[near]

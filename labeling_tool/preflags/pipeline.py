@@ -110,6 +110,13 @@ def _bar(total: int):
     return tqdm(total=total, unit="subj", desc="preflags", file=sys.stderr)
 
 
+def thumbnails(extracted: dict, report: dict) -> list:
+    """The frontal thumbnails (the duplicate detector's) in the report's order; None where missing."""
+    thumbs = {r["key"]: (r["measured"].get("duplicate") or {}).get("thumb")
+              for _, r in extracted["records"] if "error" not in r}
+    return [thumbs.get(s["subject"]) for s in report["subjects"]]
+
+
 def score(extracted: dict, detectors=DETECTORS) -> dict:
     """Second step: every detector's baseline from the records, then the report (worst first)."""
     pairs = extracted["records"]
@@ -162,9 +169,7 @@ def score_dataset(root, progress: bool = False, workers: int = 1, detectors=DETE
     extracted = extract(root, max(1, int(workers)), progress, detectors, skip_incomplete)
     report = score(extracted, detectors)
     if labels is not None:
-        thumbs = {r["key"]: (r["measured"].get("duplicate") or {}).get("thumb")
-                  for _, r in extracted["records"] if "error" not in r}
-        learn_from(report, labels, [thumbs.get(s["subject"]) for s in report["subjects"]])
+        learn_from(report, labels, thumbnails(extracted, report))
     total = time.perf_counter() - t0
     n = report["summary"]["subjects"]
     report["timing"] = {"extract_seconds": round(extracted["seconds"], 3), "total_seconds": round(total, 3),
