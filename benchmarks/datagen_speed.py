@@ -318,7 +318,7 @@ def grid_scaling(plan: Plan) -> dict:
             subject, seconds, _ = bake(gen, index)
             bake_s[g].append(seconds)
             render_s[g].append(render(gen, subject, views_of(index), 128)[1])
-            grid_mb[g] = (subject.state.sdf.nbytes + subject.state.field.nbytes) / 2 ** 20
+            grid_mb[g] = (subject.state.sdf.nbytes + subject.state.rgb.nbytes) / 2 ** 20
     rows = [{"grid_resolution": g, "bake_s": median(bake_s[g]), "render_s": median(render_s[g]),
              "grid_mb": grid_mb[g], **peak_memory(g)} for g in plan.grid_resolutions]
     return {"subjects": plan.grid_subjects, "views": VIEWS, "resolution": 128, "rows": rows}

@@ -13,6 +13,10 @@ chunked renderer draws each ray's random numbers in fixed blocks of ``NOISE_BLOC
 the CPU, so an image does not depend on the chunk size (a memory budget) or on the device.
 
 A field is a callable ``field(points (B,R*S,3), dirs (B,R*S,3)) -> (features (B,R*S,C), raw_density (B,R*S,1))``.
+A field may instead return no features (C = 0) and pass them separately as
+``features(points (K,3)) -> (K,C)``: the coarse pass then needs no features, and the final
+composite looks them up once per interval, at its midpoint (midpoint quadrature, more accurate than
+averaging the two ends at the same number of samples).
 """
 from __future__ import annotations
 
@@ -155,11 +159,13 @@ def _query(field: Field, origins, dirs, depths):
 
 
 def render_rays(field: Field, origins: torch.Tensor, dirs: torch.Tensor, ray_start, ray_end,
-                settings: RenderSettings, generator: Optional[torch.Generator] = None, noise=None):
+                settings: RenderSettings, generator: Optional[torch.Generator] = None, noise=None,
+                features: Optional[Callable[[torch.Tensor], torch.Tensor]] = None):
     """Render rays (B, R, 3) through ``field``: coarse pass, importance pass, final composite.
 
     ``noise``: (stratified (B*R, S), importance (B*R, S_imp)) uniform numbers, e.g. a slice of
-    :func:`draw_ray_noise`; drawn from ``generator`` when not given.
+    :func:`draw_ray_noise`; drawn from ``generator`` when not given. ``features``: see the module
+    docstring (the field's own features are then ignored).
     Returns (features (B,R,C), depth (B,R,1), alpha (B,R,1)); alpha is the sum of the weights.
     """
     B, R, _ = origins.shape
@@ -174,7 +180,17 @@ def render_rays(field: Field, origins: torch.Tensor, dirs: torch.Tensor, ray_sta
         feats_f, dens_f = _query(field, origins, dirs, fine)
         depths, feats, dens = merge_samples(depths, feats, dens, fine, feats_f, dens_f)
     out, depth, weights = march(feats, dens, depths, settings.density_activation)
+    if features is not None:
+        out = _weighted_features(features, origins, dirs, depths, weights)
     return out, depth, weights.sum(2)
+
+
+def _weighted_features(features, origins, dirs, depths, weights):
+    """Sum over intervals of weight (B,R,S-1,1) x features at the interval midpoint."""
+    mids = 0.5 * (depths[:, :, 1:] + depths[:, :, :-1])
+    pts = origins.unsqueeze(-2) + mids * dirs.unsqueeze(-2)
+    vals = features(pts.reshape(-1, 3))
+    return (weights * vals.reshape(*weights.shape[:-1], -1)).sum(-2)
 
 
 def draw_ray_noise(n_rays: int, settings: RenderSettings, generator: Optional[torch.Generator]):
@@ -214,13 +230,15 @@ def box_interval(origins: torch.Tensor, dirs: torch.Tensor, half_extent) -> tupl
 
 
 def render_rays_chunked(field: Field, origins: torch.Tensor, dirs: torch.Tensor, ray_start, ray_end,
-                        settings: RenderSettings, generator: Optional[torch.Generator] = None, box=None):
+                        settings: RenderSettings, generator: Optional[torch.Generator] = None, box=None,
+                        features: Optional[Callable[[torch.Tensor], torch.Tensor]] = None):
     """:func:`render_rays` over flat rays (N, 3) in chunks of ``settings.chunk_rays`` to bound memory.
 
     ray_start/ray_end: floats or (N,) tensors. ``box``: half extents of the axis-aligned box outside
     which the field shows nothing; each ray's range is clipped to it and rays that miss it are
-    not marched (features 0, alpha 0, depth ray_end). The random numbers of all rays are drawn
-    first (:func:`draw_ray_noise`), so the result does not depend on ``chunk_rays``.
+    not marched (features 0, alpha 0, depth ray_end). ``features``: as in :func:`render_rays`. The
+    random numbers of all rays are drawn first (:func:`draw_ray_noise`), so the result does not
+    depend on ``chunk_rays``.
     Returns (features (N,C), depth (N,), alpha (N,)).
     """
     n, device = origins.shape[0], origins.device
@@ -243,13 +261,14 @@ def render_rays_chunked(field: Field, origins: torch.Tensor, dirs: torch.Tensor,
         idx = slice(i, i + settings.chunk_rays) if todo is None else todo[i:i + settings.chunk_rays]
         chunk_noise = None if noise is None else tuple(None if u is None else u[idx] for u in noise)
         f, z, a = render_rays(field, origins[None, idx], dirs[None, idx], start[idx][None, :, None],
-                              end_marched[idx][None, :, None], settings, noise=chunk_noise)
+                              end_marched[idx][None, :, None], settings, noise=chunk_noise, features=features)
         feats.append(f[0])
         depths.append(z[0, :, 0])
         alphas.append(a[0, :, 0])
     if todo is None:
         return torch.cat(feats), torch.cat(depths), torch.cat(alphas)
-    channels = feats[0].shape[-1] if feats else field(origins[None, :1], dirs[None, :1])[0].shape[-1]
+    channels = (feats[0].shape[-1] if feats else features(origins[:1]).shape[-1] if features is not None
+                else field(origins[None, :1], dirs[None, :1])[0].shape[-1])
     out_f, out_z, out_a = origins.new_zeros(n, channels), end.clone(), origins.new_zeros(n)
     if feats:
         out_f.index_copy_(0, todo, torch.cat(feats))

@@ -33,7 +33,7 @@ def assert_clean(out):
 def test_subjects_are_reproducible_from_seed_and_index():
     a, b = GEN.sample_subject(3, 11), GEN.sample_subject(3, 11)
     assert a.latent == b.latent
-    assert torch.equal(a.state.field, b.state.field)
+    assert torch.equal(a.state.rgb, b.state.rgb)
     c = GEN.sample_subject(3, 12)
     assert c.latent != a.latent
     v = named_views(["front", "left"])
@@ -209,6 +209,27 @@ def test_hard_cameras_stay_finite(subject, case):
     assert_clean(out)
 
 
+def test_grid_lookup_is_the_same_split_over_threads_and_empty_grids_are_missed(subject):
+    import torch.nn.functional as F
+
+    from datagen.generators import procedural as P
+
+    grid = torch.cat([subject.state.sdf, subject.state.rgb], 1)
+    p = (torch.rand(50_001, 3, generator=torch.Generator().manual_seed(0)) * 2 - 1) * 0.5  # also outside the box
+    one = F.grid_sample(grid, (p / P.BOX).reshape(1, 1, 1, -1, 3), mode="bilinear", padding_mode="border",
+                        align_corners=True).reshape(4, -1).t()
+    threads = torch.get_num_threads()
+    try:
+        for n in (1, 2, 3):
+            torch.set_num_threads(n)
+            assert torch.equal(P.sample_grid(grid, p), one)
+    finally:
+        torch.set_num_threads(threads)
+    o, d = torch.zeros(4, 3), F.normalize(torch.randn(4, 3), dim=-1)
+    t0, t1 = P.trace_interval(torch.ones(1, 1, 8, 8, 8), o, d, 0.012, 0.0)  # nothing below the level
+    assert (t1 <= t0).all()
+
+
 def test_grazing_rays_and_camera_looking_away(subject):
     from datagen.cameras import rays
     from datagen.generators import procedural as P
@@ -220,14 +241,17 @@ def test_grazing_rays_and_camera_looking_away(subject):
     K = views([0]).K
     o, d = rays(torch.tensor(c2w[None]), torch.tensor(K), 32)
     o, d = o.reshape(-1, 3), d.reshape(-1, 3)
-    t0, t1 = P.box_interval(o, d)
+    t0, t1 = P.trace_interval(subject.state.sdf, o, d, 0.012, 0.0)
+    from datagen.render import box_interval
+    b0, b1 = box_interval(o, d, P.BOX)  # the box around the head lies inside the bounding box
+    assert (t0 >= b0 - 1e-5).all() and (t1 <= b1 + 1e-5).all() and (t1 - t0).sum() < (b1 - b0).sum()
     t, hit = P.sphere_trace(subject.state.sdf, o, d, t0, t1, 0.012)
     assert torch.isfinite(t).all() and 0 < hit.float().mean() < 1
     # Looking away from the head (forward = +z from in front of it): no ray enters the box.
     c2w[:3, :3] = np.diag([-1.0, -1.0, 1.0])
     c2w[:3, 3] = [0.0, 0.0, 2.7]
     o, d = rays(torch.tensor(c2w[None]), torch.tensor(K), 16)
-    t0, t1 = P.box_interval(o.reshape(-1, 3), d.reshape(-1, 3))
+    t0, t1 = P.trace_interval(subject.state.sdf, o.reshape(-1, 3), d.reshape(-1, 3), 0.012, 0.0)
     assert (t0 >= t1).all()
 
 
