@@ -361,6 +361,35 @@ def test_blurry_back(clean_heads):
     assert "blur" not in got["flags"]  # the front is sharp: it is the back that is blurred
 
 
+def test_blurry_back_soft_outline(clean_heads):
+    """A soft density over the back widens the back views' outline (the colour follows the alpha)."""
+    s = make_head(np.random.default_rng(113), "subj99999979")
+    back = set(back_views(s, within=50.0))
+    alpha = [np.clip(ndi.gaussian_filter(a.astype(np.float64), 1.5), 0, 255).astype(np.uint8) if i in back else a
+             for i, a in enumerate(s.alpha)]
+    rgb = list(s.rgb)
+    for i in back:  # recomposite over white: the head's colour (nearest opaque pixel) times the new alpha
+        near = ndi.distance_transform_edt(s.alpha[i] < 255, return_distances=False, return_indices=True)
+        fg = s.rgb[i][tuple(near)].astype(np.float64)
+        a = alpha[i][..., None] / 255.0
+        rgb[i] = np.clip(np.rint(fg * a + 255.0 * (1 - a)), 0, 255).astype(np.uint8)
+    got = _check(clean_heads, SubjectSample(s.key, s.metadata, rgb, alpha, s.depth, {}), "blurry_back")
+    assert "outline (around v" in got["detectors"]["blurry_back"]["why"]
+
+
+def test_alpha_edge_width_grows_with_a_soft_outline():
+    from labeling_tool.preflags.blur import alpha_edge_width
+
+    yy, xx = np.mgrid[:128, :128]
+    disc = np.clip(40.5 - np.hypot(yy - 64, xx - 64), 0, 1) * 255  # a crisp, anti-aliased disc
+    widths = [alpha_edge_width(ndi.gaussian_filter(disc, sigma)) for sigma in (0.01, 1.0, 2.5)]
+    assert widths[0] < 2.5 and widths[0] < widths[1] < widths[2], widths
+    assert np.isnan(alpha_edge_width(np.zeros((64, 64))))
+    speck = np.zeros((64, 64))
+    speck[30:32, 30:32] = 255
+    assert np.isnan(alpha_edge_width(speck))  # too short an outline
+
+
 def test_haze(clean_heads):
     bad = hazy(make_head(np.random.default_rng(112), "subj99999983"))
     got = _check(clean_heads, bad, "haze")
