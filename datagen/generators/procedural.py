@@ -115,7 +115,7 @@ SKIN_TONES = ("I", "II", "III", "IV", "V", "VI")
 SKIN_PALETTE = np.array([[0.96, 0.82, 0.73], [0.91, 0.73, 0.60], [0.82, 0.61, 0.46],
                          [0.66, 0.46, 0.32], [0.47, 0.31, 0.21], [0.30, 0.19, 0.13]])
 HAIR_COLOURS = {
-    "black": [0.035, 0.03, 0.03], "dark_brown": [0.13, 0.08, 0.05], "brown": [0.30, 0.19, 0.11],
+    "black": [0.08, 0.068, 0.06], "dark_brown": [0.13, 0.08, 0.05], "brown": [0.30, 0.19, 0.11],
     "light_brown": [0.50, 0.35, 0.21], "auburn": [0.48, 0.19, 0.08], "red": [0.66, 0.29, 0.12],
     "blond": [0.80, 0.64, 0.40], "platinum": [0.90, 0.84, 0.70], "grey": [0.56, 0.55, 0.53],
     "white": [0.86, 0.85, 0.83], "dyed": None,
@@ -731,7 +731,10 @@ def _hair(p, P):
 
 
 def _hair_rgb(q, P):
-    return _t(P["hair_rgb"]) * _strands(q, P, P["hair_style"] != "afro")[:, None]
+    """Hair colour times the strand texture, plus a sheen along the strands (so that dark hair shows
+    them too)."""
+    s = _strands(q, P, P["hair_style"] != "afro")[:, None]
+    return (_t(P["hair_rgb"]) * s + 0.3 * (s - 0.86)).clamp(0.0, 1.0)
 
 
 def _glasses_sdf(p, P, A):
@@ -1051,12 +1054,13 @@ def bake_head(params: dict, defects: list[dict], res: int) -> HeadGrid:
     pts = points[near]
     rgb = torch.zeros(res ** 3, 3)
     sdf_grid = sdf.reshape(res, res, res)
-    # Bake simple lighting: normals from the distance gradient, a key and a fill light, and ambient
+    # Bake simple lighting: normals from the distance gradient, a key, a fill and a back light, and ambient
     # occlusion from the distance along the normal.
     gz, gy, gx = torch.gradient(sdf_grid, spacing=fine_voxel)
     normal = F.normalize(torch.stack([gx, gy, gz], dim=-1).reshape(-1, 3)[near], dim=-1)
     key = F.normalize(_t(params["light_dir"]), dim=0)
     fill = F.normalize(_t([-params["light_dir"][0], 0.2, -0.6]), dim=0)
+    back = F.normalize(_t([-0.3 * params["light_dir"][0], 0.6, -0.8]), dim=0)  # from behind and above
     amb = params["ambient"]
     grid = sdf_grid[None, None]
     occlusion = torch.zeros(pts.shape[0])
@@ -1064,7 +1068,8 @@ def bake_head(params: dict, defects: list[dict], res: int) -> HeadGrid:
         d = sample_grid(grid, pts + step * normal)[:, 0]
         occlusion += weight * ((step - d) / step).clamp(0.0, 1.0)
     ao = 1.0 - 0.55 * occlusion.clamp(0.0, 1.0)
-    shade = ao * (amb + (1 - amb) * (normal @ key).clamp(min=0) + 0.25 * (normal @ fill).clamp(min=0))
+    shade = ao * (amb + (1 - amb) * (normal @ key).clamp(min=0) + 0.25 * (normal @ fill).clamp(min=0)
+                  + 0.35 * (normal @ back).clamp(min=0))
     rgb[near] = (rgb_near * shade[:, None]).clamp(0.0, 1.0)
     rgb_grid = rgb.t().reshape(3, res, res, res)
     smear = [d for d in defects if d["type"] == "blurry_back"]
