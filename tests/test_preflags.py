@@ -655,6 +655,22 @@ def test_learned_rank_puts_what_reviewers_reject_first():
     assert report["learned"]["strongest"][0]["feature"].startswith("washed_out.value")
 
 
+def test_thumbnail_components_are_kept_only_when_they_help():
+    from labeling_tool.preflags.learn import learn_ranking
+    report, bad = _report()
+    labels = {s["subject"]: int(b) for s, b in list(zip(report["subjects"], bad))[:60]}
+    rng = np.random.default_rng(5)
+    noise = [rng.normal(size=64) for _ in bad]  # thumbnails that say nothing about the verdicts
+    learn_ranking(report, labels, noise)
+    assert not any(f.startswith("thumb.") for f in report["learned"]["features"])
+    for s in report["subjects"]:  # now only the thumbnails carry the signal
+        s["detectors"]["washed_out"]["value"] = 0.0
+    telling = [rng.normal(size=64) + 3.0 * b for b in bad]
+    learn_ranking(report, labels, telling)
+    assert any(f.startswith("thumb.") for f in report["learned"]["features"])
+    assert report["learned"]["cross_validated_auc"] > 0.9
+
+
 def test_too_few_verdicts_learn_nothing():
     from labeling_tool.preflags.learn import learn_ranking
     report, bad = _report()

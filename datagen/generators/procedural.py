@@ -5,8 +5,9 @@ the subject's seed: face shape, nose, lips, eyes, ears and brows, skin, sex and 
 nine hair styles, glasses, caps, neck, shoulders and clothing (see ``sample_params``). Per subject
 (once) the field is baked into a grid of signed distance and shaded colour: the distance coarse to
 fine, exact in a narrow band around the surface, the colour only next to it. Per view, a sphere
-tracer on that grid finds where each ray meets the head, and the shared volume renderer integrates
-only a short band around that point (rays that miss get no samples). Density is VolSDF's Laplace
+tracer on that grid, inside the box around the head, finds where each ray meets it, and the shared
+volume renderer integrates only a short band around that point (rays that miss get no samples;
+the colour is looked up at the final intervals' midpoints, the distance alone drives the sampling). Density is VolSDF's Laplace
 density of the signed distance, so alpha and depth are those of the surface. Thin parts (cap
 brims, glasses rims) are at least two grid voxels thick, so that a ray meets one clean edge.
 
