@@ -245,7 +245,8 @@ def sample_sweep(plan: Plan) -> dict:
     for i in indices:
         reference[i], seconds, _ = render(reference_gen, subjects[i], views[i], res)
         reference_s.append(seconds)
-    cases = [(s, True) for s in plan.sample_settings] + [(s, False) for s in plan.sample_settings]
+    settings = sorted(set(plan.sample_settings) | {DEFAULT_SAMPLES})  # the default is always measured
+    cases = [(s, True) for s in settings] + [(s, False) for s in settings]
     timings = {case: {i: [] for i in indices} for case in cases}
     stages = {case: {i: [] for i in indices} for case in cases}
     errors = {}
