@@ -53,7 +53,8 @@ QUEUE_SHARE = 0.30
 # What the thresholds were chosen on (the held-out seeds were not generated until they were fixed).
 TUNED_ON = ("seeds 0 and 1 (96 subjects each, these settings) and seed 2 (40 subjects at a 100 % rate "
             "of the five back-of-head and haze classes); the learner's ridge and its thumbnail rule on seed 3 "
-            "(600 subjects at 64 px)")
+            "(600 subjects at 64 px). Seeds 21-23 were held out in earlier runs; the janus cue's cap was set "
+            "after one of them showed its false alarms, so they are not held out any more")
 GOALS = {"any_precision": 0.9, "any_recall": 0.9, "janus_recall": 0.9, "class_recall": 0.85, "clean_flagged": 0.03,
          "learn_recall_at_30": 0.95}
 
@@ -313,12 +314,12 @@ def write_markdown(data: dict) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--seeds", type=int, nargs="+", default=[21, 22], help="held-out seeds")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[24, 25], help="held-out seeds")
     ap.add_argument("--tune-seed", type=int, default=0)
     ap.add_argument("--subjects", type=int, default=96)
     ap.add_argument("--resolution", type=int, default=128)
     ap.add_argument("--defect-rate", type=float, default=0.25)
-    ap.add_argument("--learn-seed", type=int, default=23)
+    ap.add_argument("--learn-seed", type=int, default=26)
     ap.add_argument("--learn-subjects", type=int, default=600, help="0 to skip the learning section")
     ap.add_argument("--learn-resolution", type=int, default=64)
     ap.add_argument("--verdicts", type=int, default=200)

@@ -278,6 +278,18 @@ def test_clean_heads_are_not_flagged(clean_heads):
     assert report["summary"]["flagged"] == 0
 
 
+def test_janus_cue_needs_more_than_one_measure():
+    """A bump on a smooth back alone (relief z ~9) is not a face; edges, colour and bump together are."""
+    from labeling_tool.preflags.janus import Janus
+
+    det = Janus()
+    base = {"sim": (0.10, 0.05), "colour": (0.20, 0.05), "relief": (math.log(1e-4), 0.5)}
+    bump = {"back": 4, "front": 0, "sim": 0.10, "colour": 0.20, "relief": 0.01, "faces": {}}
+    assert det.score(bump, base, 0, []).score < 0.5
+    face = dict(bump, sim=0.30, colour=0.40)
+    assert det.score(face, base, 0, []).score >= 0.5
+
+
 def test_janus(clean_heads):
     bad = make_head(np.random.default_rng(101), "subj99999990", defect="janus")
     got = _check(clean_heads, bad, "janus")
