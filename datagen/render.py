@@ -267,8 +267,12 @@ def render_rays_chunked(field: Field, origins: torch.Tensor, dirs: torch.Tensor,
         alphas.append(a[0, :, 0])
     if todo is None:
         return torch.cat(feats), torch.cat(depths), torch.cat(alphas)
-    channels = (feats[0].shape[-1] if feats else features(origins[:1]).shape[-1] if features is not None
-                else field(origins[None, :1], dirs[None, :1])[0].shape[-1])
+    if feats:
+        channels = feats[0].shape[-1]
+    elif features is not None:
+        channels = features(origins[:1]).shape[-1]
+    else:
+        channels = field(origins[None, :1], dirs[None, :1])[0].shape[-1]
     out_f, out_z, out_a = origins.new_zeros(n, channels), end.clone(), origins.new_zeros(n)
     if feats:
         out_f.index_copy_(0, todo, torch.cat(feats))

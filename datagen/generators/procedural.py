@@ -7,9 +7,10 @@ nine hair styles, glasses, caps, neck, shoulders and clothing (see ``sample_para
 fine, exact in a narrow band around the surface, the colour only next to it. Per view, a sphere
 tracer on that grid, inside the box around the head, finds where each ray meets it, and the shared
 volume renderer integrates only a short band around that point (rays that miss get no samples;
-the colour is looked up at the final intervals' midpoints, the distance alone drives the sampling). Density is VolSDF's Laplace
-density of the signed distance, so alpha and depth are those of the surface. Thin parts (cap
-brims, glasses rims) are at least two grid voxels thick, so that a ray meets one clean edge.
+the distance alone drives the sampling, the colour is looked up at the final intervals'
+midpoints). Density is VolSDF's Laplace density of the signed distance, so alpha and depth are
+those of the surface. Thin parts (cap brims, glasses rims) are at least two grid voxels thick, so
+that a ray meets one clean edge.
 
 Defects modelled on 3D-GAN failures can be injected at a set rate (``DEFECT_TYPES``, below); what
 was injected, with its severity, is returned as ``Subject.truth``.
@@ -1196,7 +1197,7 @@ class ProceduralHeads(Generator):
         alpha = torch.zeros(V * N)
         depth_sum = torch.zeros(V * N)
 
-        def density(pts, _dirs):  # the colour is looked up only where it counts (``colour``)
+        def density(pts, _dirs):  # no features: the renderer looks ``colour`` up per final interval
             d = sample_grid(grid.sdf, pts.reshape(-1, 3))
             return d.new_zeros(*pts.shape[:-1], 0), laplace_density(d, cfg.beta).reshape(*pts.shape[:-1], 1)
 
