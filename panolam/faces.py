@@ -127,12 +127,15 @@ def check_dlib() -> None:
 
 
 @functools.lru_cache(maxsize=None)
-def _hog():
+def hog_detector():
+    """dlib's HOG frontal face detector (built in; one per process)."""
     return _dlib().get_frontal_face_detector()
 
 
 @functools.lru_cache(maxsize=None)
-def _mmod():
+def cnn_detector():
+    """dlib's MMOD CNN face detector (``mmod_human_face_detector.dat``; one per process). Its window
+    finds faces of about 80 px and larger; detections have confidence above 0."""
     return _dlib().cnn_face_detection_model_v1(_model_file("mmod_human_face_detector.dat"))
 
 
@@ -340,7 +343,7 @@ def _confirmed(u8: np.ndarray, box: Box) -> bool:
     x1, y1 = min(w, int(math.ceil(cx + half))), min(h, int(math.ceil(cy + half)))
     k = VERIFY_FACE_PX / box.width
     crop = _resize(u8[y0:y1, x0:x1], k)
-    for det in _mmod()(crop, 0):
+    for det in cnn_detector()(crop, 0):
         r = det.rect
         fx, fy = x0 + (r.left() + r.right()) / 2 / k, y0 + (r.top() + r.bottom()) / 2 / k
         if box.left <= fx < box.right and box.top <= fy < box.bottom:
@@ -355,7 +358,7 @@ def detect_faces(image, max_side: int = 1024, verify: bool = True) -> list[Box]:
     k = min(1.0, max_side / max(u8.shape[:2]))
     work = _resize(u8, k) if k < 1 else u8
     for upsample in (1, 2):
-        rects, scores, _ = _hog().run(work, upsample, 0.0)
+        rects, scores, _ = hog_detector().run(work, upsample, 0.0)
         boxes = [Box(r.left(), r.top(), r.right() + 1, r.bottom() + 1, s) for r, s in zip(rects, scores)]
         if verify:
             boxes = [b for b in boxes if _confirmed(work, b)]

@@ -308,6 +308,26 @@ def test_crater(clean_heads):
     assert "depression" in got["detectors"]["holes"]["why"]
 
 
+def test_crater_seen_from_both_mirrored_sides_is_not_a_crater():
+    """A dip the yaw 45 and yaw 315 views both show (a hairline at the temples) cancels; one side alone
+    flags, and so does a dip on the back view, which is its own mirror."""
+    from labeling_tool.preflags.holes import Holes
+
+    det = Holes()
+    base = {b: (0.0, 0.002) for b in range(8)}
+    no_silhouette_holes = np.zeros(8, np.float32)
+
+    def score(*craters):
+        return det.score({"silhouette": no_silhouette_holes, "craters": list(craters)}, base, 0, [])
+
+    left, right, back = (1, 45.0, 0.012, (0.3, 0.4)), (7, 315.0, 0.011, (0.3, 0.6)), (4, 180.0, 0.008, (0.3, 0.5))
+    both = score(left, right, (4, 180.0, 0.0, (0.3, 0.5)))
+    assert both.score < 0.5 and both.value == pytest.approx(0.5)  # z 6 less the mirror's 5.5
+    one = score(left, (7, 315.0, 0.0, (0.3, 0.6)))
+    assert one.score >= 0.5 and one.value == pytest.approx(6.0) and "v01" in one.why and "mirrored view v07" in one.why
+    assert score(back, (0, 0.0, 0.0, (0.3, 0.5))).value == pytest.approx(4.0)
+
+
 def test_see_through_hole(clean_heads):
     bad = make_head(np.random.default_rng(104), "subj99999993", defect="see_through")
     got = _check(clean_heads, bad, "holes")
@@ -412,6 +432,20 @@ def test_face_detector_finds_a_photographed_face_on_the_back(clean_heads):
     bad = face_on_the_back(make_head(np.random.default_rng(113), "subj99999984"))
     got = _check(clean_heads, bad, "janus")
     assert "face detector on v0" in got["detectors"]["janus"]["why"]
+
+
+def test_head_crop_is_the_head_not_the_shoulders():
+    from labeling_tool.preflags.janus import head_crop
+
+    yy, xx = np.mgrid[:128, :128]
+    mask = (yy - 45) ** 2 + (xx - 64) ** 2 < 30 ** 2          # a head: columns 35-93, rows 16-74
+    mask |= (yy > 90) & (np.abs(xx - 64) < 60)                # shoulders 119 px wide, to the frame (row 127)
+    rgb = np.dstack([xx, yy, np.zeros_like(xx)]).astype(np.uint8)
+    crop = head_crop(rgb, mask)
+    pad = int(0.06 * 128)
+    assert crop[0, 0, 0] == 35 - pad and crop[0, -1, 0] == 93 + pad  # columns of the head, with the margin
+    assert crop[0, 0, 1] == 16 - pad and crop.shape[0] == pad + int(0.8 * 112)  # top 80 % of 112 rows
+    assert head_crop(rgb, np.zeros_like(mask)).shape == rgb.shape  # nothing to crop to: the whole view
 
 
 def test_janus_not_applicable_without_back_views():

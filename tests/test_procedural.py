@@ -141,14 +141,18 @@ def _with_defect(index, defect, res=128, yaw=(0.0, 180.0)):
     return out
 
 
-def test_janus_is_a_face_a_face_detector_finds_on_the_back():
-    from labeling_tool.preflags.janus import NO_FACE, best_face
+def test_janus_is_a_face_the_face_detectors_find_on_the_back():
+    from labeling_tool.preflags.janus import NO_FACE, best_cnn_face, best_face
 
     clean, janus = _with_defect(2, {"type": "janus", "severity": 1.0})
     u8 = lambda rgb: (rgb * 255 + 0.5).astype(np.uint8)  # noqa: E731
     assert best_face(u8(clean.rgb[0])) > 0 and best_face(u8(janus.rgb[0])) > 0  # the real face, both
     assert best_face(u8(clean.rgb[1])) == NO_FACE
     assert best_face(u8(janus.rgb[1])) > 0                                      # a second one behind
+    # the CNN detector on the head of each view, 128 px: the real face, none on the clean back, the second face
+    cnn = [[best_cnn_face(u8(o.rgb[i]), o.alpha[i] > 0.5) for i in (0, 1)] for o in (clean, janus)]
+    assert cnn[0][0] > 0 and cnn[1][0] > 0
+    assert cnn[0][1] == NO_FACE and cnn[1][1] > 0
     assert np.abs(clean.rgb[0] - janus.rgb[0]).mean() < 2e-3
 
 

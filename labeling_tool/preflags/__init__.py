@@ -4,8 +4,12 @@ Each detector (one module each; ``registry.DETECTORS`` lists them in report orde
 a score in [0, 1] (0.5 and above means flagged) and a short explanation naming the view and the number
 it measured. Scores only order the review queue; nothing is deleted.
 
-    janus        a face on the back of the head (back view against the front view)
+    janus        a face on the back of the head (face detectors on the back views; back against front view)
+    flat_back    a flattened or truncated back of the head (depth of the back view)
+    seam         a discontinuity down the back
+    blurry_back  a soft outline or smeared colour at the back, against the front
     floaters     silhouette parts detached from the head
+    haze         semi-transparent material around the head
     holes        see-through holes in the silhouette and craters in the depth
     washed_out   low saturation and lifted dark tones
     blur         soft silhouette edges
@@ -15,7 +19,9 @@ it measured. Scores only order the review queue; nothing is deleted.
 
     from labeling_tool.preflags import score_dataset
     from datagen.preflags import write_preflags
-    write_preflags("/data/heads", score_dataset("/data/heads", progress=True, workers=2))
+
+    if __name__ == "__main__":  # workers > 1 start in fresh processes, which import the calling script
+        write_preflags("/data/heads", score_dataset("/data/heads", progress=True, workers=2))
 
 The report format is described in ``datagen.preflags``; ``label-tool auto`` is the command line.
 """

@@ -74,17 +74,29 @@ def plan(root, skip_incomplete: bool = False) -> tuple[list, list]:
     return tasks, skipped
 
 
+def _pool_context():
+    """Workers forked from a fresh server process that has imported the detectors, not from this one:
+    this process may already run native thread pools (dlib's CNN detector, BLAS), and a plain fork
+    copies their locks mid-use, so workers can hang. Spawned workers where there is no forkserver."""
+    if "forkserver" not in mp.get_all_start_methods():
+        return mp.get_context("spawn")
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload([__name__])
+    return ctx
+
+
 def extract(root, workers: int = 1, progress: bool = False, detectors=DETECTORS,
             skip_incomplete: bool = False) -> dict:
     """First pass: {"index_sha256", "records": [(shard, record), ...] in index order, "skipped_shards",
-    "seconds"}."""
+    "seconds"}. With ``workers`` > 1 the workers are fresh processes (see ``_pool_context``), which
+    import the calling script as a module: scripts guard their entry point (``if __name__ ==
+    "__main__":``)."""
     t0 = time.perf_counter()
     tasks, skipped = plan(root, skip_incomplete)
     tasks = [t + (detectors,) for t in tasks]
     bar = _bar(len(tasks)) if progress else None
     if workers > 1 and len(tasks) > 1:
-        ctx = mp.get_context("fork") if "fork" in mp.get_all_start_methods() else mp.get_context()
-        with ctx.Pool(workers) as pool:
+        with _pool_context().Pool(workers) as pool:
             records = []
             for r in pool.imap(_measure, tasks, chunksize=4):
                 records.append(r)
