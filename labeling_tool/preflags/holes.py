@@ -52,7 +52,7 @@ def deepest_crater(depth, mask, s: float, st, symmetric: bool = False):
 class Holes(Detector):
     name = "holes"
     description = ("see-through holes in the silhouette, or a crater: a round depression of the depth map in the "
-                   "upper head, robust z against the same viewing direction")
+                   "upper head, robust z against the same viewing direction, less the mirrored view's")
 
     @dataclass(frozen=True)
     class Settings:

@@ -149,10 +149,10 @@ def face_evidence(front, back, s: float):
 
 class Janus(Detector):
     name = "janus"
-    description = ("a face on the back of the head: back view vs front view (edge correlation and face-region "
-                   "colour correlation, as is and mirrored) and a nose-like depth bump where the front has its "
-                   "nose; mean of the three robust z-scores (each capped at 3) against the dataset; n/a without a "
-                   "back view")
+    description = ("a face on the back of the head: dlib's face detectors (HOG on the back and back-diagonal "
+                   "views, CNN on the back view's head), or the back view vs the front view (edge correlation and "
+                   "face-region colour correlation, as is and mirrored) and a nose-like depth bump where the front "
+                   "has its nose, the mean of the three robust z-scores (each capped at 3); n/a without a back view")
 
     @dataclass(frozen=True)
     class Settings:
