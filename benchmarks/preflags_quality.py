@@ -310,9 +310,13 @@ def write_markdown(data: dict) -> str:
               "their severity (on a 40-subject tuning set: mostly darker skin framed by hair); contrast "
               "stretching or a gamma per view did not change that. dlib's CNN detector on the back view's head "
               "(the view scaled to 192 px, 0.14 s a subject) finds 70 % of that set, 86 % together with HOG, and "
-              "nothing on 147 subjects without a janus. Larger scales, a second scale where HOG scores above "
-              "-0.9, and the back-diagonal views add at most 4 points on that set for 2-3x the time; what both "
-              "detectors miss needs another cue.",
+              "nothing on 147 subjects without a janus. Larger scales (2.5x alone: 80 %), a second scale where "
+              "HOG scores above -0.9, and the back-diagonal views add nothing to the union with HOG on that set, "
+              "for 2-3x the time. What both detectors miss (obvious faces to a person: large eyes, nose, mouth, "
+              "often on darker skin) needs another cue. Tried briefly, without success: an eye-pair blob detector "
+              "(it missed the real eyes of the front view too), and dlib's face embedding of the back view "
+              "against the front view at the front's face box (cosine 0.88-0.96 with a janus, up to 0.92 "
+              "without; 0.9 s a subject).",
               "- At the default rate the baselines are tighter (fewer defects in them), so dataset-relative cues "
               "(blurry_back, seam, washed_out) flag a few more clean subjects; the face detector, an absolute "
               "score, does not move.", ""]

@@ -30,7 +30,8 @@ NO_FACE = -1.0                        # the detector's score when it reports not
 # Width a back view is scaled to before the CNN detector reads its head. Tuning (40 injected janus, 147
 # other subjects, 128 px views, head crops about 100 px): 1.5x (192 px) finds 70 % of the faces (with
 # HOG 86 %) in 0.14 s a subject; 2.5x finds 80 % (with HOG also 86 %) in 0.42 s; the back-diagonal
-# views add 4 points for 3x the time. No detection on any subject without a janus at any of these sizes.
+# views, for 3x the time, add nothing to the union with HOG. No detection on any subject without a janus
+# at any of these sizes.
 CNN_VIEW_PX = 192
 
 
