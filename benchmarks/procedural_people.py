@@ -1,17 +1,17 @@
 """Do procedural heads look like different people? Identity diversity, attribute coverage and speed of
-the procedural generator against an earlier one, side by side in one run.
+the procedural generator against earlier ones, side by side in one run.
 
-The earlier generator is read from the project's git history (``--baseline``, default: the last
-commit of the mannequin generator) and imported in place of ``datagen.generators.procedural``'s
-siblings, so the comparison needs a clone with history.
+The earlier generators are read from the project's git history (``--baseline``, default: the last
+commit of the mannequin generator and the last before the sex and age cues) and imported beside
+``datagen.generators.procedural``'s siblings, so the comparison needs a clone with history.
 
 Writes ``benchmarks/reports/procedural_people.{json,md}`` and a contact sheet of 32 subjects, front
 and back (``procedural_people.png``).
 
-    python benchmarks/procedural_people.py            # 24 subjects for identity, 4 timed, ~15 min on 2 cores
+    python benchmarks/procedural_people.py            # 40 subjects for identity, 4 timed, ~10 min on 2 cores
     python benchmarks/procedural_people.py --quick    # 16 and 1
     python benchmarks/procedural_people.py --report-only
-    python benchmarks/procedural_people.py --baseline <commit>
+    python benchmarks/procedural_people.py --baseline <commit> [<commit> ...]
 
 Sections:
 1. Attribute coverage: ``sample_params`` of 1,000 seeds (no rendering): the share of each hair style,
@@ -51,7 +51,8 @@ SEED = 0
 COVERAGE_SEEDS = 1000
 SHEET_SUBJECTS = 32
 SAME_PERSON = 0.6  # dlib's threshold on the embedding distance
-BASELINE = "b91c245"  # the last commit of the mannequin generator
+# Earlier generators to compare against: the last mannequin, and the last before the sex and age cues.
+BASELINES = ("b91c245", "60eed9e")
 ROOT = Path(__file__).resolve().parents[1]
 ATTRIBUTES = ("hair_style", "hair_colour", "skin_tone", "sex", "age_bracket", "facial_hair", "glasses", "cap",
               "makeup", "neckline", "iris")
@@ -61,7 +62,7 @@ def generator_at(commit: str):
     """``datagen/generators/procedural.py`` as of ``commit``, imported beside today's modules."""
     src = subprocess.run(["git", "-C", str(ROOT), "show", f"{commit}:datagen/generators/procedural.py"],
                          check=True, capture_output=True, text=True).stdout
-    spec = importlib.util.spec_from_loader("datagen.generators.procedural_baseline", loader=None)
+    spec = importlib.util.spec_from_loader(f"datagen.generators.procedural_{commit}", loader=None)
     module = importlib.util.module_from_spec(spec)
     module.__package__ = "datagen.generators"
     sys.modules[spec.name] = module  # dataclasses look their module up there
@@ -105,18 +106,20 @@ def identity(n: int, faces: Faces, generators: dict) -> dict:
     out = {}
     for label, module in generators.items():
         gen = module.ProceduralHeads(module.ProceduralConfig(defect_rate=0.0))
-        found, embeddings, control = 0, [], []
+        found, embeddings, control, sexes = 0, [], [], []
         for i in range(n):
             subject = gen.sample_subject(SEED, i)
             found += faces.found(u8(gen.render(subject, equator_views((0.0,)), 128).rgb[0]))
             big = gen.render(subject, equator_views((0.0, 10.0)), 256).rgb
             e0, e1 = faces.embed(u8(big[0])), faces.embed(u8(big[1]))
             embeddings.append(e0)
+            sexes.append(subject.latent["params"].get("sex"))
             if e0 is not None and e1 is not None:
                 control.append(float(np.linalg.norm(e0 - e1)))
-        kept = [e for e in embeddings if e is not None]
-        dist = [float(np.linalg.norm(a - b)) for a, b in itertools.combinations(kept, 2)]
-        out[label] = {"subjects": n, "detected_128": found, "embedded_256": len(kept), "distances": dist,
+        kept = [(e, sex) for e, sex in zip(embeddings, sexes) if e is not None]
+        pairs = [(float(np.linalg.norm(a - b)), sa == sb) for (a, sa), (b, sb) in itertools.combinations(kept, 2)]
+        out[label] = {"subjects": n, "detected_128": found, "embedded_256": len(kept),
+                      "distances": [d for d, _ in pairs], "same_sex": [same for _, same in pairs],
                       "same_subject_yaw10": control}
     return out
 
@@ -168,21 +171,27 @@ def markdown(res: dict) -> str:
     lines = ["# Procedural people: identity diversity, attribute coverage, speed", "",
              f"Command: `{res['command']}` ({res['date_utc']}, {res['machine'].get('usable_cpus', '?')} CPUs, "
              f"load average {res['load_before']}, torch threads {res['threads']}). "
-             f"The old generator is `datagen/generators/procedural.py` at commit {res['baseline']}.", ""]
+             "The earlier generators are `datagen/generators/procedural.py` at commits "
+             f"{', '.join(res['baselines'])}.", ""]
     lines += ["## Identity (dlib)", "",
               "Frontal views (yaw 0, pitch 0): HOG face detection (upsample 1) at 128 px; ResNet embedding "
               "distance between different subjects at 256 px (dlib's same-person threshold: 0.6; higher is "
-              "more different). Control: one subject at yaw 0 against yaw 10.", "",
-              "| generator | subjects | face found at 128 px | median distance | p10 | p90 | pairs below 0.6 | same subject, yaw 0 vs 10 (median) |",
-              "|---|---|---|---|---|---|---|---|"]
+              "more different); the median also over pairs of the same sex and of different sexes. "
+              "Control: one subject at yaw 0 against yaw 10.", "",
+              "| generator | subjects | face found at 128 px | median distance | p10 | p90 | pairs below 0.6 | "
+              "same sex / different sex (median) | same subject, yaw 0 vs 10 (median) |",
+              "|---|---|---|---|---|---|---|---|---|"]
     for label, r in res["identity"].items():
         d, c = stats(r["distances"]), stats(r["same_subject_yaw10"])
+        by_sex = [np.median([x for x, same in zip(r["distances"], r["same_sex"]) if same == want] or [np.nan])
+                  for want in (True, False)]
         lines.append(f"| {label} | {r['subjects']} | {r['detected_128']}/{r['subjects']} "
                      f"({100 * r['detected_128'] / r['subjects']:.0f} %) | {d.get('median', float('nan')):.3f} | "
                      f"{d.get('p10', float('nan')):.3f} | {d.get('p90', float('nan')):.3f} | "
-                     f"{100 * d.get('share_below_0.6', float('nan')):.0f} % | {c.get('median', float('nan')):.3f} |")
+                     f"{100 * d.get('share_below_0.6', float('nan')):.0f} % | {by_sex[0]:.3f} / {by_sex[1]:.3f} | "
+                     f"{c.get('median', float('nan')):.3f} |")
     lines += ["", "## Speed (32 views, 360 protocol, 128 px, grid 128^3)", "",
-              "Old and new alternately on the same subjects and cameras; wall seconds, medians.", "",
+              "The generators in turn on the same subjects and cameras; wall seconds, medians.", "",
               "| generator | bake s | render s | total s per subject |", "|---|---|---|---|"]
     for label, t in res["speed"].items():
         b = np.median([x["bake_s"] for x in t])
@@ -207,7 +216,7 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="16 subjects for identity, 1 timed")
     ap.add_argument("--report-only", action="store_true", help="rewrite the markdown from the JSON")
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--baseline", default=BASELINE, help="commit of the generator to compare against")
+    ap.add_argument("--baseline", nargs="+", default=list(BASELINES), help="commits of the generators to compare against")
     args = ap.parse_args(argv)
     REPORTS.mkdir(parents=True, exist_ok=True)
     json_path = REPORTS / f"{NAME}.json"
@@ -215,10 +224,10 @@ def main(argv=None):
         res = json.loads(json_path.read_text())
     else:
         torch.set_num_threads(args.threads)
-        n_id, n_speed = (16, 1) if args.quick else (24, 4)
-        generators = {f"old ({args.baseline})": generator_at(args.baseline), "new": procedural}
+        n_id, n_speed = (16, 1) if args.quick else (40, 4)
+        generators = {f"old ({commit})": generator_at(commit) for commit in args.baseline} | {"new": procedural}
         res = {"command": "python benchmarks/procedural_people.py" + (" --quick" if args.quick else ""),
-               "baseline": args.baseline,
+               "baselines": args.baseline,
                "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "machine": machine_info(),
                "load_before": load_average(), "threads": args.threads}
         print("coverage ...", flush=True)

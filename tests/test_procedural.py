@@ -336,3 +336,67 @@ def test_cap_brim_seen_edge_on_is_one_clean_edge(resolution):
     step = max(1, resolution // 128)
     assert np.abs(np.diff(tops[1:])).max(initial=0) <= step and np.abs(np.diff(widths[1:])).max(initial=0) <= step
     assert max(widths) <= resolution // 10  # a thin brim (tilted down a little), not a slab
+
+
+def first_params(match, seed=0):
+    """The first subject's parameters (index order) for which ``match`` holds."""
+    for i in range(500):
+        params = sample_params(subject_rng(seed, i, STREAM_LATENT))
+        if match(params):
+            return params
+    raise AssertionError("no subject matches")
+
+
+def test_baked_beard_edge_matches_the_analytic_field():
+    """The baked grid reproduces the field where the beard meets the skin to within a voxel: a beard
+    region thresholded without scaling to a distance left the exact band a voxel thin there, and the
+    beard's edge rendered in steps."""
+    from datagen.generators.procedural import HEAD_SCALE, bake_head, head_field, sample_grid
+
+    params = first_params(lambda p: p["facial_hair"] == "beard")
+    grid = bake_head(params, [], 128)
+    g = torch.Generator().manual_seed(0)
+    pts = torch.rand(300000, 3, generator=g) * 2 - 1  # the lower front of the face (head units)
+    pts = torch.stack([0.3 * pts[:, 0], 0.12 * pts[:, 1] - 0.12, 0.15 * pts[:, 2].abs() + 0.05], -1) * HEAD_SCALE
+    exact = head_field(pts, params, [], colour=False)[0]
+    near = exact.abs() < 0.004
+    baked = sample_grid(grid.sdf, pts[near])[:, 0]
+    voxel = 0.96 / 127
+    assert near.sum() > 1000
+    assert (baked - exact[near]).abs().max() < 0.9 * voxel
+
+
+def test_sexes_differ_in_face_shape_and_brows_stay_visible():
+    from datagen.generators.procedural import LUMA
+
+    params = [sample_params(subject_rng(0, i, STREAM_LATENT)) for i in range(400)]
+    male = [p for p in params if p["sex"] == "male"]
+    female = [p for p in params if p["sex"] == "female"]
+    med = lambda group, key: np.median([p[key] for p in group])  # noqa: E731
+    for key, gap in (("jaw_width", 0.05), ("chin_width", 0.03), ("brow_thickness", 0.008), ("nose_width", 0.015)):
+        assert med(male, key) - med(female, key) > gap, key
+    for key, gap in (("brow_height", 0.01), ("upper_lip", 0.004), ("brow_arch", 0.003)):
+        assert med(female, key) - med(male, key) > gap, key
+    for p in params:
+        assert np.asarray(p["brow_rgb"]) @ LUMA <= 0.55 * (np.asarray(p["skin_rgb"]) @ LUMA) + 1e-6
+        assert p["upper_lip"] > 0 and p["lower_lip"] > 0 and p["eye_open"] > 0
+    # darker skin is exposed brighter, as a camera metering on the face would
+    expo = {t: np.mean([p["exposure"] for p in params if p["skin_tone"] == t]) for t in ("I", "VI")}
+    assert expo["I"] == 1.0 and 1.2 < expo["VI"] <= 1.35
+
+
+def test_age_brings_nasolabial_folds_and_forehead_lines():
+    from datagen.generators.procedural import _anchors_of, _skin_rgb
+
+    young = first_params(lambda p: p["facial_hair"] == "none" and not p["makeup"])
+    old = dict(young, age=80.0)
+    young = dict(young, age=18.0)
+    A = _anchors_of(young)
+    tip_y = young["eye_height"] - young["nose_length"] + young["nose_tilt"]
+    mw, nw, my = young["mouth_width"], young["nose_width"], young["mouth_y"]
+    fold = (0.25 * (nw + 0.006) + 0.5 * (mw + 0.032) + 0.25 * (mw + 0.012),  # the fold's middle
+            0.25 * (tip_y + 0.01) + 0.25 * (tip_y + my) + 0.25 * (my - 0.022))
+    forehead = (0.0, young["eye_height"] + young["brow_height"] + 0.035)
+    for (x, y), ratio in ((fold, 0.8), (forehead, 0.93)):
+        p = torch.tensor([[x, y, 0.3]])
+        assert _skin_rgb(p, old, A).mean() < ratio * _skin_rgb(p, young, A).mean()

@@ -114,6 +114,7 @@ def _pick(rng, options, probs=None):
 
 # Skin albedo (sRGB) at the centre of each tone bracket, light to dark (brackets as Fitzpatrick I-VI).
 SKIN_TONES = ("I", "II", "III", "IV", "V", "VI")
+LUMA = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 luminance weights
 SKIN_PALETTE = np.array([[0.96, 0.82, 0.73], [0.91, 0.73, 0.60], [0.82, 0.61, 0.46],
                          [0.66, 0.46, 0.32], [0.47, 0.31, 0.21], [0.30, 0.19, 0.13]])
 HAIR_COLOURS = {
@@ -198,44 +199,55 @@ def sample_params(rng: np.random.Generator) -> dict:
         HAIR_COLOURS["brown"]) * (0.7 + 1.2 * (hair_name != "dyed") * old)
     if hair_name in ("blond", "light_brown", "red"):
         brow_rgb = np.asarray(hair_rgb) * 0.55
+    # Brows stay visible: at most 0.55 of the skin's luminance (grey brows on tan skin vanish otherwise,
+    # and with them what face detectors and recognisers look for).
+    skin_luma = float(skin @ LUMA)
+    brow_rgb = brow_rgb * min(1.0, 0.55 * skin_luma / max(float(brow_rgb @ LUMA), 1e-6))
 
     eye_height = u(0.018, 0.04)
     nose_length = u(0.07, 0.13) + 0.01 * masc
     mouth_y = eye_height - nose_length - u(0.04, 0.065)
     chin_y = mouth_y - u(0.08, 0.125) - 0.012 * masc
+    # Sexual dimorphism on top of the terms in ``masc`` below: -1 feminine .. +1 masculine (about
+    # +-0.6 for most people). Masculine faces: wider jaw and chin, heavier brow ridge and brows, lower
+    # and flatter brows, longer and wider nose, longer chin, thinner lips, narrower eyes. With it a
+    # face recogniser places two people of different sex further apart than two of the same sex.
+    dim = 2.0 * (masc - 0.5)
+    nose_length += 0.016 * dim
+    chin_y -= 0.02 * dim
     light_az = u(-0.6, 0.6)
     return {
         "sex": sex, "age": age, "age_bracket": age_bracket(age), "masculinity": masc, "weight": weight,
         "skin_tone": SKIN_TONES[min(int(tone * 6), 5)], "skin_rgb": list(skin),
         "skull_radii": [u(0.182, 0.2) + 0.01 * masc, u(0.215, 0.24), u(0.225, 0.25) + 0.01 * masc],
         "skull_center_y": u(0.035, 0.06),
-        "face_width": u(0.145, 0.2) + 0.012 * masc,
+        "face_width": u(0.145, 0.2) + 0.012 * masc + 0.016 * dim,
         "cheekbone": u(0.0, 1.0),
         "cheek_fat": min(1.0, u(0.0, 0.6) + 0.6 * weight) * (1.0 - 0.4 * old),
-        "jaw_width": u(0.075, 0.135) + 0.025 * masc + 0.025 * weight,
+        "jaw_width": u(0.075, 0.135) + 0.025 * masc + 0.025 * weight + 0.04 * dim,
         "jaw_angle_y": u(-0.17, -0.12),
         "chin_y": chin_y,
-        "chin_width": u(0.018, 0.04) + 0.018 * masc,
+        "chin_width": u(0.018, 0.04) + 0.018 * masc + 0.024 * dim,
         "chin_projection": u(-0.012, 0.018),
-        "brow_ridge": float(np.clip(u(0.0, 0.45) + 0.6 * masc * u(0.4, 1.0), 0.0, 1.0)),
+        "brow_ridge": float(np.clip(u(0.0, 0.45) + 0.6 * masc * u(0.4, 1.0) + 0.6 * dim, 0.0, 1.0)),
         "forehead_slope": u(0.0, 1.0) * (0.4 + 0.6 * masc),
         "eye_spacing": u(0.064, 0.098),
         "eye_height": eye_height,
         "eye_width": u(0.024, 0.043) - 0.002 * masc,
-        "eye_open": u(0.007, 0.021) - 0.002 * old,
+        "eye_open": max(0.004, u(0.007, 0.021) - 0.002 * old - 0.004 * dim),
         "eye_tilt": u(-0.12, 0.22),
         "iris": iris, "iris_rgb": list(np.clip(np.asarray(IRIS_COLOURS[iris]) * u(0.85, 1.15), 0, 1)),
         "nose_length": nose_length,
         "nose_projection": u(0.025, 0.075) + 0.008 * masc,
-        "nose_width": u(0.02, 0.058) + 0.006 * masc,
+        "nose_width": u(0.02, 0.058) + 0.006 * masc + 0.012 * dim,
         "nose_bridge": u(0.011, 0.017) + 0.003 * masc,
         "nose_tip": u(0.013, 0.022),
         "nose_hump": u(0.0, 1.0) * (0.3 + 0.7 * masc),
         "nose_tilt": u(-0.012, 0.014),
         "mouth_y": mouth_y,
         "mouth_width": u(0.034, 0.072) + 0.004 * masc,
-        "upper_lip": u(0.006, 0.014) - 0.002 * old + 0.002 * (1 - masc),
-        "lower_lip": u(0.008, 0.018) - 0.002 * old + 0.002 * (1 - masc),
+        "upper_lip": max(0.003, u(0.006, 0.014) - 0.002 * old + 0.002 * (1 - masc) - 0.004 * dim),
+        "lower_lip": max(0.003, u(0.008, 0.018) - 0.002 * old + 0.002 * (1 - masc) - 0.004 * dim),
         "lip_rgb": list(np.clip(lip_base, 0.0, 1.0)),
         "makeup": bool(makeup),
         "eye_shadow_rgb": list(np.clip(skin * _pick(rng, [[0.75, 0.62, 0.62], [0.62, 0.55, 0.65], [0.7, 0.6, 0.5]]), 0, 1)),
@@ -248,10 +260,10 @@ def sample_params(rng: np.random.Generator) -> dict:
         "under_eye": u(0.03, 0.10) + 0.06 * old,
         "skin_waves": [[u(0.01, 0.025), list(rng.normal(0, 22, 3)), u(0, 6.3)] for _ in range(4)],
         "facial_hair": facial_hair,
-        "brow_thickness": u(0.004, 0.013) + 0.004 * masc,
-        "brow_arch": u(0.002, 0.012) * (1.2 - 0.6 * masc),
+        "brow_thickness": u(0.004, 0.013) + 0.004 * masc + 0.006 * dim,
+        "brow_arch": u(0.002, 0.012) * (1.2 - 0.6 * masc) * (1.0 - dim),
         "brow_length": u(0.05, 0.066),
-        "brow_height": u(0.027, 0.05),
+        "brow_height": u(0.027, 0.05) - 0.012 * dim,
         "brow_tilt": u(-0.01, 0.012),
         "brow_rgb": list(np.clip(brow_rgb, 0.0, 1.0)),
         "hair_style": style,
@@ -272,6 +284,8 @@ def sample_params(rng: np.random.Generator) -> dict:
         "neckline": _pick(rng, ["crew", "v", "collar"]),
         "light_dir": [math.sin(light_az) * 0.9, u(0.25, 0.7), math.cos(light_az) * 0.9],
         "ambient": u(0.42, 0.55),
+        # Exposure as a camera metering on the face would set it: darker skin is exposed up to 1.35x.
+        "exposure": min(1.35, max(1.0, (0.42 / skin_luma) ** 0.4)),
     }
 
 
@@ -604,7 +618,22 @@ def _skin_rgb(p, P, A):
         region = _beard_region(p, P)
         s = 0.35 if P["facial_hair"] == "stubble" else 0.2
         rgb = rgb * (1 - s * region[:, None]) + _t(P["brow_rgb"]) * 0.6 * s * region[:, None]
-    return rgb
+    # Lines that come with age: nasolabial folds (from above the nose's wing, bowing out past the mouth
+    # corner) and three forehead lines.
+    old = (P["age"] - 18.0) / 62.0
+    start = (P["nose_width"] + 0.006, tip_y + 0.01)
+    bow = (P["mouth_width"] + 0.032, 0.5 * (tip_y + my))
+    end = (P["mouth_width"] + 0.012, my - 0.022)
+    fold = None
+    for t in np.linspace(0.0, 1.0, 13):  # a quadratic Bezier curve, sampled
+        cx, cy = ((1 - t) ** 2 * a + 2 * t * (1 - t) * b + t * t * c for a, b, c in zip(start, bow, end))
+        dt = torch.sqrt((ax - cx) ** 2 + (y - cy) ** 2)
+        fold = dt if fold is None else torch.minimum(fold, dt)
+    lines = (0.05 + 0.3 * old) * _gauss(fold, 0.0055)
+    forehead = E + P["brow_height"] + 0.035
+    lines = lines + 0.1 * old * sum(_gauss(y - forehead - k * 0.02, 0.004) for k in range(3)) * (
+        1 - _smoothstep(0.05, 0.1, ax))
+    return rgb * (1 - (lines * front).clamp(0.0, 0.8)[:, None])
 
 
 def _beard_region(p, P):
@@ -633,7 +662,9 @@ def _facial_hair(p, P, A):
     elif kind == "goatee":
         region = region * (1 - _smoothstep(0.03, 0.05, x.abs())) * torch.maximum(
             _gauss(y - (my + 0.016), 0.009), (y < my - 0.008).float()) * _smoothstep(P["chin_y"] - 0.02, P["chin_y"] + 0.01, y)
-    d = smax(shell, 0.5 - region, 0.004) if kind != "beard" else smax(shell, 0.45 - region, 0.006)
+    # The region (0..1, rising over 0.01 to 0.04 head units) scaled toward a distance: unscaled, its
+    # gradient of up to ~90 leaves the baked band a voxel thin and the beard's edge in steps.
+    d = smax(shell, 0.08 * (0.5 - region), 0.004) if kind != "beard" else smax(shell, 0.08 * (0.45 - region), 0.006)
     d = smax(d, -_lips(p, P, A) + 0.004, 0.003)
     return d
 
@@ -1072,7 +1103,7 @@ def bake_head(params: dict, defects: list[dict], res: int) -> HeadGrid:
     ao = 1.0 - 0.55 * occlusion.clamp(0.0, 1.0)
     shade = ao * (amb + (1 - amb) * (normal @ key).clamp(min=0) + 0.25 * (normal @ fill).clamp(min=0)
                   + 0.35 * (normal @ back).clamp(min=0))
-    rgb[near] = (rgb_near * shade[:, None]).clamp(0.0, 1.0)
+    rgb[near] = (rgb_near * (shade * params.get("exposure", 1.0))[:, None]).clamp(0.0, 1.0)
     rgb_grid = rgb.t().reshape(3, res, res, res)
     smear = [d for d in defects if d["type"] == "blurry_back"]
     if smear:
