@@ -305,10 +305,17 @@ def write_markdown(data: dict) -> str:
         lines += [f"## Tuning seed {a['tune_seed']} (for reference; thresholds were chosen on it)", ""]
         lines += class_table(data["tuning"]["rows"]) + [
             "", f"Clean subjects flagged: {fmt(data['tuning']['clean_flagged_share'], True)}.", ""]
+    L = data.get("learning")
     lines += ["## Caveats", "",
               "- These are the procedural generator's own injections, modelled on 3D-GAN failures (see the gallery); "
               "real GAN failures vary more, so treat the numbers as what the detectors can do, not what they will do.",
               "- Thresholds are dataset-relative: a dataset where most subjects share a defect makes it typical.",
+              "- The thresholds were chosen on heads of the generator before its sex and age cues (commit 60eed9e); "
+              "the datasets here were made by the generator of this run's commit.",
+              *([f"- Learning: the pre-flag order already puts {L['bad_verdicts']} of the {L['defective']} defects "
+                 f"among the first {L['verdicts']} subjects, so the {L['left_defective']} left are the ones the "
+                 "pre-flag features barely see; learning moves some of them up the rest of the queue but cannot "
+                 "add what the features lack."] if L else []),
               "- blur, empty, implausible and duplicate have no injected counterpart; their flags on clean subjects "
               "count as false alarms above.",
               "- blurry_back measures the width of the back views' outline (the injected soft density widens it) "

@@ -183,12 +183,12 @@ def markdown(res: dict) -> str:
               "|---|---|---|---|---|---|---|---|---|"]
     for label, r in res["identity"].items():
         d, c = stats(r["distances"]), stats(r["same_subject_yaw10"])
-        by_sex = [np.median([x for x, same in zip(r["distances"], r["same_sex"]) if same == want] or [np.nan])
-                  for want in (True, False)]
+        split = [[x for x, same in zip(r["distances"], r["same_sex"]) if same == want] for want in (True, False)]
+        by_sex = " / ".join(f"{np.median(v):.3f}" for v in split) if all(split) else "n/a (no sex drawn)"
         lines.append(f"| {label} | {r['subjects']} | {r['detected_128']}/{r['subjects']} "
                      f"({100 * r['detected_128'] / r['subjects']:.0f} %) | {d.get('median', float('nan')):.3f} | "
                      f"{d.get('p10', float('nan')):.3f} | {d.get('p90', float('nan')):.3f} | "
-                     f"{100 * d.get('share_below_0.6', float('nan')):.0f} % | {by_sex[0]:.3f} / {by_sex[1]:.3f} | "
+                     f"{100 * d.get('share_below_0.6', float('nan')):.0f} % | {by_sex} | "
                      f"{c.get('median', float('nan')):.3f} |")
     lines += ["", "## Speed (32 views, 360 protocol, 128 px, grid 128^3)", "",
               "The generators in turn on the same subjects and cameras; wall seconds, medians.", "",
