@@ -67,11 +67,12 @@ class _TypicalRng:
 
 
 def neutral_head_params() -> dict:
-    """The procedural generator's ``sample_params`` at mid-range values with the modal choices, then
-    a short crop, no accessories or facial hair, and no shoulders: the head the template is made of."""
+    """The procedural generator's ``sample_params`` at mid-range values with the modal choices and no
+    sexual dimorphism beyond the masculinity terms, then a short crop, no accessories or facial hair,
+    and no shoulders: the head the template is made of."""
     from datagen.generators.procedural import sample_params
 
-    params = sample_params(_TypicalRng())
+    params = sample_params(_TypicalRng(), dimorphism=0.0)
     params.update(hair_style="crop", hair_thickness=0.014, hair_length=0.0, glasses=False, cap=False,
                   facial_hair="none", torso=False)
     return params

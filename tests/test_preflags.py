@@ -61,7 +61,7 @@ def _cylinder_hit(o, d, c, radius, y0, y1):
 
 def make_head(rng, key, views=VIEWS, protocol="360", defect=None, hair_rgb=None):
     """A SubjectSample of an analytic head; defect in (None, 'janus', 'floaters', 'hole', 'see_through',
-    'flat_back', 'seam'); ``hair_rgb`` replaces the drawn hair colour."""
+    'flat_back', 'seam', 'seam_step'); ``hair_rgb`` replaces the drawn hair colour."""
     radii = np.array([0.19, 0.23, 0.22]) * rng.uniform(0.95, 1.05, 3)
     tone = rng.uniform(0.45, 1.0)
     skin = (np.array([0.97, 0.80, 0.69]) * (1 - tone) + np.array([0.33, 0.20, 0.13]) * tone)
@@ -139,6 +139,8 @@ def make_head(rng, key, views=VIEWS, protocol="360", defect=None, hair_rgb=None)
         shade = 0.4 + 0.6 * np.clip((n * light).sum(-1), 0, 1)
         col = np.clip(col * shade[..., None], 0, 1)
         dep = np.where(m, CAMERA - (p * -fwd).sum(-1) + 0.0, 0.0)
+        if defect == "seam_step":  # one half of the back stands 12 mm out: a step in the surface, same colour
+            dep = np.where((which == 0) & (z < 0) & (x > 0), dep - 0.012 * max(0.0, (fwd * [0, 0, 1]).sum()), dep)
         if defect == "hole":
             cdir = np.array([0.0, 0.55, -0.84])
             centre = cdir * radii * 1.0
@@ -384,6 +386,27 @@ def test_seam(clean_heads):
     bad = make_head(np.random.default_rng(110), "subj99999981", defect="seam")
     got = _check(clean_heads, bad, "seam")
     assert "centre columns" in got["detectors"]["seam"]["why"]
+
+
+def test_seam_step_in_the_surface(clean_heads):
+    bad = make_head(np.random.default_rng(112), "subj99999978", defect="seam_step")
+    got = _check(clean_heads, bad, "seam")
+    assert "px in depth down the centre" in got["detectors"]["seam"]["why"]
+
+
+def test_depth_step_measures_the_step_not_the_curve():
+    from labeling_tool.preflags.back import depth_step
+
+    n, focal_px, dist = 64, 272.0, 2.5
+    y, x = np.mgrid[0:n, 0:n] - (n - 1) / 2
+    mask = x ** 2 + y ** 2 < 26 ** 2
+    pixel = dist / focal_px
+    sphere = dist - np.sqrt(np.clip((26 * pixel) ** 2 - (x * pixel) ** 2 - (y * pixel) ** 2, 0, None))
+    assert depth_step(mask, np.where(mask, sphere, 0), focal_px) < 0.1
+    for shift in (0.0, 2.0):  # the step on the centre column, or two columns off it
+        stepped = sphere - 0.6 * pixel * (x > shift)
+        assert abs(depth_step(mask, np.where(mask, stepped, 0), focal_px) - 0.6) < 0.1
+    assert depth_step(mask, np.where(mask, sphere - 0.6 * pixel * (x > 12), 0), focal_px) < 0.1  # not the centre
 
 
 def test_blurry_back(clean_heads):

@@ -155,10 +155,12 @@ def _hair_colour(rng, age):
     return name, rgb
 
 
-def sample_params(rng: np.random.Generator) -> dict:
+def sample_params(rng: np.random.Generator, dimorphism: float = 1.0) -> dict:
     """Draw one person's shape, colours and accessories (JSON-ready floats, strings and lists).
 
-    Lengths are in head units (world units / HEAD_SCALE); the face looks toward +z.
+    Lengths are in head units (world units / HEAD_SCALE); the face looks toward +z. ``dimorphism``
+    scales how far sex moves the face's shape beyond its masculinity terms (0 for a sex-neutral head,
+    as the model's embedded template is made of).
     """
     u = lambda a, b: float(rng.uniform(a, b))  # noqa: E731
     sex = _pick(rng, ["female", "male"])
@@ -212,7 +214,7 @@ def sample_params(rng: np.random.Generator) -> dict:
     # +-0.6 for most people). Masculine faces: wider jaw and chin, heavier brow ridge and brows, lower
     # and flatter brows, longer and wider nose, longer chin, thinner lips, narrower eyes. With it a
     # face recogniser places two people of different sex further apart than two of the same sex.
-    dim = 2.0 * (masc - 0.5)
+    dim = 2.0 * (masc - 0.5) * dimorphism
     nose_length += 0.016 * dim
     chin_y -= 0.02 * dim
     light_az = u(-0.6, 0.6)

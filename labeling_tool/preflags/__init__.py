@@ -6,7 +6,7 @@ it measured. Scores only order the review queue; nothing is deleted.
 
     janus        a face on the back of the head (face detectors on the back views; back against front view)
     flat_back    a flattened or truncated back of the head (depth of the back view)
-    seam         a discontinuity down the back
+    seam         a discontinuity down the back (colour, or a step in depth)
     blurry_back  a soft outline or smeared colour at the back, against the front
     floaters     silhouette parts detached from the head
     haze         semi-transparent material around the head
