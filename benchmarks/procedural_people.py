@@ -5,8 +5,9 @@ The earlier generators are read from the project's git history (``--baseline``, 
 commit of the mannequin generator and the last before the sex and age cues) and imported beside
 ``datagen.generators.procedural``'s siblings, so the comparison needs a clone with history.
 
-Writes ``benchmarks/reports/procedural_people.{json,md}`` and a contact sheet of 32 subjects, front
-and back (``procedural_people.png``).
+Writes ``benchmarks/reports/procedural_people.{json,md}``, a contact sheet of 32 subjects, front
+and back (``procedural_people.png``), and the distribution of the identity distances per generator
+(``procedural_people_distances.png``, with matplotlib).
 
     python benchmarks/procedural_people.py            # 40 subjects for identity, 4 timed, ~10 min on 2 cores
     python benchmarks/procedural_people.py --quick    # 16 and 1
@@ -40,7 +41,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from benchmarks.common import equator_views, load_average, machine_info  # noqa: E402
+from benchmarks.common import equator_views, load_average, machine_info, pyplot  # noqa: E402
 from datagen.cameras import sample_views  # noqa: E402
 from datagen.generators import procedural  # noqa: E402
 from datagen.generators.base import STREAM_CAMERAS, STREAM_LATENT, subject_rng  # noqa: E402
@@ -158,6 +159,28 @@ def contact_sheet(path: Path, n: int = SHEET_SUBJECTS, res: int = 128) -> None:
     sheet.save(path)
 
 
+def plot_distances(res: dict, path: Path) -> bool:
+    """Histogram of the embedding distances between different subjects, one per generator; False
+    without matplotlib."""
+    plt = pyplot()
+    if plt is None:
+        return False
+    fig, ax = plt.subplots(figsize=(7, 4))
+    bins = np.linspace(0.0, 1.0, 41)
+    for label, r in res["identity"].items():
+        d = np.asarray(r["distances"])
+        ax.hist(d, bins=bins, histtype="step", linewidth=1.8, label=f"{label}: median {np.median(d):.3f}")
+    ax.axvline(SAME_PERSON, color="k", linestyle="--", linewidth=1, label="dlib same-person threshold 0.6")
+    ax.set_xlabel("dlib face-embedding distance between two different subjects (frontal, 256 px)")
+    ax.set_ylabel("pairs")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return True
+
+
 def stats(values) -> dict:
     v = np.asarray(values, float)
     if not v.size:
@@ -190,6 +213,8 @@ def markdown(res: dict) -> str:
                      f"{d.get('p10', float('nan')):.3f} | {d.get('p90', float('nan')):.3f} | "
                      f"{100 * d.get('share_below_0.6', float('nan')):.0f} % | {by_sex} | "
                      f"{c.get('median', float('nan')):.3f} |")
+    if res.get("distance_plot"):
+        lines += ["", f"![distances between different subjects]({res['distance_plot']})"]
     lines += ["", "## Speed (32 views, 360 protocol, 128 px, grid 128^3)", "",
               "The generators in turn on the same subjects and cameras; wall seconds, medians.", "",
               "| generator | bake s | render s | total s per subject |", "|---|---|---|---|"]
@@ -239,6 +264,7 @@ def main(argv=None):
         print("contact sheet ...", flush=True)
         contact_sheet(REPORTS / f"{NAME}.png")
         json_path.write_text(json.dumps(res, indent=1))
+    res["distance_plot"] = f"{NAME}_distances.png" if plot_distances(res, REPORTS / f"{NAME}_distances.png") else None
     (REPORTS / f"{NAME}.md").write_text(markdown(res))
     print((REPORTS / f"{NAME}.md").read_text())
 
