@@ -151,7 +151,10 @@ def _hair_colour(rng, age):
     if rgb is None:
         rgb = _pick(rng, [[0.75, 0.15, 0.45], [0.15, 0.35, 0.75], [0.55, 0.25, 0.70], [0.20, 0.60, 0.50],
                           [0.85, 0.35, 0.55]])
-    rgb = np.clip(np.asarray(rgb) * rng.uniform(0.9, 1.1, 3), 0.0, 1.0)
+    jitter = rng.uniform(0.9, 1.1, 3)
+    # Brightness varies +-10 %, hue little: independent channels turned grey hair green or pink.
+    jitter = jitter.mean() + 0.25 * (jitter - jitter.mean())
+    rgb = np.clip(np.asarray(rgb) * jitter, 0.0, 1.0)
     return name, rgb
 
 
