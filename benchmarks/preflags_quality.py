@@ -169,7 +169,7 @@ def learning(report: dict, thumbs: list, truth: dict, verdicts: int) -> dict:
     def whole(rest_queue):
         return sum(1 for k in (reviewed + rest_queue)[:whole_cut] if truth[k]) / all_bad if all_bad else None
     return {"whole_queue_cut": whole_cut, "whole_without": whole(left), "whole_with": whole(learned),
-            "subjects": len(order), "defective": sum(1 for k in order if truth[k]), "verdicts": len(labels),
+            "subjects": len(order), "defective": all_bad, "verdicts": len(labels),
             "bad_verdicts": sum(labels.values()), "left": len(left), "left_defective": n_bad, "queue_cut": cut,
             "recall_without": recall(left), "recall_with": recall(learned), "learned": report.get("learned")}
 

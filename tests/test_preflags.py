@@ -140,7 +140,7 @@ def make_head(rng, key, views=VIEWS, protocol="360", defect=None, hair_rgb=None)
         col = np.clip(col * shade[..., None], 0, 1)
         dep = np.where(m, CAMERA - (p * -fwd).sum(-1) + 0.0, 0.0)
         if defect == "seam_step":  # one half of the back stands 12 mm out: a step in the surface, same colour
-            dep = np.where((which == 0) & (z < 0) & (x > 0), dep - 0.012 * max(0.0, (fwd * [0, 0, 1]).sum()), dep)
+            dep = np.where((which == 0) & (z < 0) & (x > 0), dep - 0.012 * max(0.0, fwd[2]), dep)
         if defect == "hole":
             cdir = np.array([0.0, 0.55, -0.84])
             centre = cdir * radii * 1.0

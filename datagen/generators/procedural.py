@@ -134,6 +134,11 @@ STYLE_PROBS = {"female": [0.02, 0.05, 0.10, 0.13, 0.14, 0.24, 0.13, 0.11, 0.08],
                "male": [0.13, 0.27, 0.20, 0.09, 0.04, 0.06, 0.05, 0.04, 0.12]}
 
 
+def _oldness(age: float) -> float:
+    """0 at 18, 1 at 80: how far age has worked on a face."""
+    return (age - 18.0) / 62.0
+
+
 def age_bracket(age: float) -> str:
     return next(name for lo, hi, name in AGE_BRACKETS if lo <= age < hi)
 
@@ -170,7 +175,7 @@ def sample_params(rng: np.random.Generator, dimorphism: float = 1.0) -> dict:
     male = sex == "male"
     masc = float(np.clip((0.8 if male else 0.2) + rng.normal(0.0, 0.08), 0.0, 1.0))
     age = u(18.0, 80.0)
-    old = (age - 18.0) / 62.0  # 0 at 18, 1 at 80
+    old = _oldness(age)
 
     weight = u(0.0, 1.0)
     tone = u(0.0, 1.0)
@@ -625,7 +630,7 @@ def _skin_rgb(p, P, A):
         rgb = rgb * (1 - s * region[:, None]) + _t(P["brow_rgb"]) * 0.6 * s * region[:, None]
     # Lines that come with age: nasolabial folds (from above the nose's wing, bowing out past the mouth
     # corner) and three forehead lines.
-    old = (P["age"] - 18.0) / 62.0
+    old = _oldness(P["age"])
     start = (P["nose_width"] + 0.006, tip_y + 0.01)
     bow = (P["mouth_width"] + 0.032, 0.5 * (tip_y + my))
     end = (P["mouth_width"] + 0.012, my - 0.022)
@@ -1108,7 +1113,7 @@ def bake_head(params: dict, defects: list[dict], res: int) -> HeadGrid:
     ao = 1.0 - 0.55 * occlusion.clamp(0.0, 1.0)
     shade = ao * (amb + (1 - amb) * (normal @ key).clamp(min=0) + 0.25 * (normal @ fill).clamp(min=0)
                   + 0.35 * (normal @ back).clamp(min=0))
-    rgb[near] = (rgb_near * (shade * params.get("exposure", 1.0))[:, None]).clamp(0.0, 1.0)
+    rgb[near] = (rgb_near * (shade * params["exposure"])[:, None]).clamp(0.0, 1.0)
     rgb_grid = rgb.t().reshape(3, res, res, res)
     smear = [d for d in defects if d["type"] == "blurry_back"]
     if smear:
