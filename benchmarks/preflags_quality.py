@@ -57,7 +57,8 @@ TUNED_ON = ("seeds 0 and 1 (96 subjects each, these settings) and seed 2 (40 sub
             "(600 subjects at 64 px). Seeds 21-23 were held out in earlier runs; the janus cue's cap was set "
             "after one of them showed its false alarms, and the crater threshold was set on seeds 0, 1, 21 and "
             "22, so they are not held out any more. The seam's depth-step cue was set on seeds 0 and 1 and 40 "
-            "injected seams of seed 2, heads of the generator with sex and age cues")
+            "injected seams of seed 2, heads of the generator with sex and age cues. The janus eye-pair cue was set on "
+            "80 injected janus of seed 4 (all janus) and the subjects of seeds 0, 1 and 5 (160 clean)")
 GOALS = {"any_precision": 0.9, "any_recall": 0.9, "janus_recall": 0.9, "class_recall": 0.85, "clean_flagged": 0.03,
          "learn_recall_at_30": 0.95}
 

@@ -471,6 +471,35 @@ def test_head_crop_is_the_head_not_the_shoulders():
     assert head_crop(rgb, np.zeros_like(mask)).shape == rgb.shape  # nothing to crop to: the whole view
 
 
+def test_eye_pair_where_a_face_has_its_eyes():
+    """A photographed face on a textured back view shows a pair of eyes; the same face low on the head
+    (eyes below 60 % of the silhouette) and the texture alone do not; a pair flags the subject."""
+    from PIL import Image
+    from skimage import data
+
+    from labeling_tool.preflags.janus import Janus, eye_pair
+
+    face = Image.fromarray(data.astronaut()[70:190, 165:285]).resize((56, 56), Image.BILINEAR)
+    yy, xx = np.mgrid[:128, :128]
+    mask = ((yy - 60) / 48.0) ** 2 + ((xx - 64) / 40.0) ** 2 < 1
+    hair = np.clip(0.3 + 0.05 * np.random.default_rng(0).standard_normal((128, 128, 1)), 0, 1) * [0.8, 0.6, 0.4]
+    back = (np.where(mask[..., None], hair, 1.0) * 255).astype(np.uint8)
+
+    def with_face(row):
+        img = back.copy()
+        img[row:row + 56, 36:92] = np.asarray(face)
+        return img
+
+    assert eye_pair(back, mask) == 0
+    assert eye_pair(with_face(26), mask) >= 8
+    assert eye_pair(with_face(70), mask) == 0
+    base = {"sim": (0.10, 0.05), "colour": (0.20, 0.05), "relief": (math.log(1e-4), 0.5)}
+    record = {"back": 4, "front": 0, "sim": 0.10, "colour": 0.20, "relief": 1e-4, "faces": {4: -1.0}, "cnn": -1.0}
+    assert Janus().score(dict(record, eyes=1), base, 0, []).score < 0.5
+    flag = Janus().score(dict(record, eyes=3), base, 0, [])
+    assert flag.score >= 0.5 and "a pair of eyes on v04 (3 detections each" in flag.why
+
+
 def test_janus_not_applicable_without_back_views():
     rng = np.random.default_rng(5)
     heads = [make_head(rng, subject_id(i), protocol="frontal") for i in range(6)]

@@ -4,7 +4,7 @@ Each detector (one module each; ``registry.DETECTORS`` lists them in report orde
 a score in [0, 1] (0.5 and above means flagged) and a short explanation naming the view and the number
 it measured. Scores only order the review queue; nothing is deleted.
 
-    janus        a face on the back of the head (face detectors on the back views; back against front view)
+    janus        a face on the back of the head (face detectors, an eye-pair cascade; back against front view)
     flat_back    a flattened or truncated back of the head (depth of the back view)
     seam         a discontinuity down the back (colour, or a step in depth)
     blurry_back  a soft outline or smeared colour at the back, against the front
