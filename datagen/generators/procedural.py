@@ -218,11 +218,11 @@ def sample_params(rng: np.random.Generator, dimorphism: float = 1.0) -> dict:
     nose_length = u(0.07, 0.13) + 0.01 * masc
     mouth_y = eye_height - nose_length - u(0.04, 0.065)
     chin_y = mouth_y - u(0.08, 0.125) - 0.012 * masc
-    # Sexual dimorphism on top of the terms in ``masc`` below: -1 feminine .. +1 masculine (about
-    # +-0.6 for most people). Masculine faces: wider jaw and chin, heavier brow ridge and brows, lower
+    # Sexual dimorphism on top of the terms in ``masc`` below: -1.5 feminine .. +1.5 masculine (about
+    # +-0.9 for most people). Masculine faces: wider jaw and chin, heavier brow ridge and brows, lower
     # and flatter brows, longer and wider nose, longer chin, thinner lips, narrower eyes. With it a
     # face recogniser places two people of different sex further apart than two of the same sex.
-    dim = 2.0 * (masc - 0.5) * dimorphism
+    dim = 3.0 * (masc - 0.5) * dimorphism
     nose_length += 0.016 * dim
     chin_y -= 0.02 * dim
     light_az = u(-0.6, 0.6)
@@ -243,8 +243,10 @@ def sample_params(rng: np.random.Generator, dimorphism: float = 1.0) -> dict:
         "forehead_slope": u(0.0, 1.0) * (0.4 + 0.6 * masc),
         "eye_spacing": u(0.064, 0.098),
         "eye_height": eye_height,
-        "eye_width": u(0.024, 0.043) - 0.002 * masc,
-        "eye_open": max(0.004, u(0.007, 0.021) - 0.002 * old - 0.004 * dim),
+        # The opening's height is 0.6-1.0 of the iris's diameter, as in most adults: the lids cover the
+        # iris's top and often its bottom (wider openings gave goggle eyes, sclera all round the iris).
+        "eye_width": u(0.03, 0.042) - 0.002 * masc,
+        "eye_open": max(0.004, u(0.008, 0.015) - 0.002 * old - 0.004 * dim),
         "eye_tilt": u(-0.12, 0.22),
         "iris": iris, "iris_rgb": list(np.clip(np.asarray(IRIS_COLOURS[iris]) * u(0.85, 1.15), 0, 1)),
         "nose_length": nose_length,
@@ -256,8 +258,9 @@ def sample_params(rng: np.random.Generator, dimorphism: float = 1.0) -> dict:
         "nose_tilt": u(-0.012, 0.014),
         "mouth_y": mouth_y,
         "mouth_width": u(0.034, 0.072) + 0.004 * masc,
-        "upper_lip": max(0.003, u(0.006, 0.014) - 0.002 * old + 0.002 * (1 - masc) - 0.004 * dim),
-        "lower_lip": max(0.003, u(0.008, 0.018) - 0.002 * old + 0.002 * (1 - masc) - 0.004 * dim),
+        # Half-heights of the lips; at least 0.005 (thinner, a lip is less than a grid voxel thick at 128^3).
+        "upper_lip": max(0.005, u(0.006, 0.014) - 0.002 * old + 0.002 * (1 - masc) - 0.003 * dim),
+        "lower_lip": max(0.005, u(0.008, 0.018) - 0.002 * old + 0.002 * (1 - masc) - 0.003 * dim),
         "lip_rgb": list(np.clip(lip_base, 0.0, 1.0)),
         "makeup": bool(makeup),
         "eye_shadow_rgb": list(np.clip(skin * _pick(rng, [[0.75, 0.62, 0.62], [0.62, 0.55, 0.65], [0.7, 0.6, 0.5]]), 0, 1)),
@@ -293,7 +296,9 @@ def sample_params(rng: np.random.Generator, dimorphism: float = 1.0) -> dict:
         "clothing_rgb": list(np.clip(np.asarray(_pick(rng, CLOTHING_COLOURS)) * rng.uniform(0.85, 1.1, 3), 0, 1)),
         "neckline": _pick(rng, ["crew", "v", "collar"]),
         "light_dir": [math.sin(light_az) * 0.9, u(0.25, 0.7), math.cos(light_az) * 0.9],
-        "ambient": u(0.42, 0.55),
+        # Soft light, as in most portrait photos (harder light made the faces' shading, alike for all,
+        # outweigh what tells people apart).
+        "ambient": u(0.62, 0.75),
         # Exposure as a camera metering on the face would set it: darker skin is exposed up to 1.35x.
         "exposure": min(1.35, max(1.0, (0.42 / skin_luma) ** 0.4)),
     }
@@ -491,7 +496,7 @@ def _eyes(p, P, A):
         ball = sd_sphere(p, c, EYE_RADIUS)
         look = F.normalize(p - _t(c), dim=-1)
         cosang = look[:, 2]
-        iris_edge = 0.84
+        iris_edge = 0.87  # cosine of the iris's angular radius (iris radius 0.0143 head units)
         rgb = _t([0.86, 0.82, 0.78]).expand(p.shape[0], 3) * (0.85 + 0.15 * _smoothstep(0.5, 0.8, cosang))[:, None]
         iris = _t(P["iris_rgb"]) * (0.75 + 0.5 * ((cosang - iris_edge) / (1 - iris_edge)).clamp(0, 1))[:, None]
         iris = iris * (1.0 + 0.15 * torch.sin(90.0 * torch.atan2(look[:, 1], look[:, 0])))[:, None]
@@ -669,9 +674,11 @@ def _facial_hair(p, P, A):
     region = _beard_region(p, P)
     if kind == "moustache":
         region = region * _gauss(y - (my + 0.016), 0.009) * (1 - _smoothstep(P["mouth_width"], P["mouth_width"] + 0.015, x.abs()))
-    elif kind == "goatee":
-        region = region * (1 - _smoothstep(0.03, 0.05, x.abs())) * torch.maximum(
-            _gauss(y - (my + 0.016), 0.009), (y < my - 0.008).float()) * _smoothstep(P["chin_y"] - 0.02, P["chin_y"] + 0.01, y)
+    elif kind == "goatee":  # a moustache and a rounded patch on the chin, from the lower lip down
+        top, bottom = my - 0.008, P["chin_y"] - 0.012
+        patch = (x / 0.034) ** 2 + ((y - 0.5 * (top + bottom)) / (0.5 * (top - bottom))) ** 2
+        moustache = _gauss(y - (my + 0.016), 0.009) * (1 - _smoothstep(0.03, 0.05, x.abs()))
+        region = region * torch.maximum(moustache, 1 - _smoothstep(0.7, 1.0, patch))
     # The region (0..1, rising over 0.01 to 0.04 head units) scaled toward a distance: unscaled, its
     # gradient of up to ~90 leaves the baked band a voxel thin and the beard's edge in steps.
     d = smax(shell, 0.08 * (0.5 - region), 0.004) if kind != "beard" else smax(shell, 0.08 * (0.45 - region), 0.006)
@@ -811,12 +818,14 @@ def _cap_sdf(p, P):
     cy = cc[1]
     th = max(P["hair_thickness"], 0.0) * (0.5 if P["hair_style"] == "afro" else 1.0) + 0.015
     dome = sd_ellipsoid(p, cc, (rx + th, ry + th, rz + th))
-    dome = smax(dome, (cy + 0.05 - 0.1 * _smoothstep(-0.1, -0.2, p[:, 2])) - p[:, 1], 0.01)
+    # The band sits on the forehead about a brow's height above the brows (lower, it hid them).
+    dome = smax(dome, (cy + 0.065 - 0.1 * _smoothstep(-0.1, -0.2, p[:, 2])) - p[:, 1], 0.01)
     # Brim: a flat plate of constant thickness with a rounded edge (an exact distance), tilted down.
     tilt = 0.18
-    yb = cy + 0.055
-    q_y = (p[:, 1] - yb) * math.cos(tilt) + (p[:, 2] - 0.1) * math.sin(tilt)
-    q_z = -(p[:, 1] - yb) * math.sin(tilt) + (p[:, 2] - 0.1) * math.cos(tilt)
+    yb = cy + 0.07
+    zb = 0.115
+    q_y = (p[:, 1] - yb) * math.cos(tilt) + (p[:, 2] - zb) * math.sin(tilt)
+    q_z = -(p[:, 1] - yb) * math.sin(tilt) + (p[:, 2] - zb) * math.cos(tilt)
     outline = torch.sqrt((p[:, 0] * 1.05) ** 2 + q_z ** 2) - 0.19
     outline = torch.maximum(outline, 0.02 - q_z)  # the front half only
     brim = _extrude(outline + 0.006, q_y.abs() - (CAP_BRIM_HALF - 0.006)) - 0.006
