@@ -213,6 +213,18 @@ def hazy(s: SubjectSample, level=0.3) -> SubjectSample:
     return SubjectSample(s.key, s.metadata, rgb, alpha, s.depth, {})
 
 
+def beside(s: SubjectSample, shape: np.ndarray, grey=150) -> SubjectSample:
+    """``shape`` (alpha in [0, 1], RES x RES) drawn opaque-over where the head is not, in every view."""
+    alpha, rgb = [], []
+    for a, c in zip(s.alpha, s.rgb):
+        a0 = a.astype(np.float64) / 255
+        a1 = np.maximum(a0, shape * (a0 < 0.5))
+        add = (a1 - a0)[..., None]
+        rgb.append(np.clip(np.rint(c * (1 - add) + grey * add), 0, 255).astype(np.uint8))
+        alpha.append(np.clip(np.rint(a1 * 255), 0, 255).astype(np.uint8))
+    return SubjectSample(s.key, s.metadata, rgb, alpha, s.depth, {})
+
+
 def face_on_the_back(s: SubjectSample) -> SubjectSample:
     """A photographed face (scikit-image's astronaut) painted over the back views' hair."""
     from PIL import Image
@@ -449,6 +461,20 @@ def test_haze(clean_heads):
     bad = hazy(make_head(np.random.default_rng(112), "subj99999983"))
     got = _check(clean_heads, bad, "haze")
     assert "floaters" not in got["flags"]  # semi-transparent, attached to nothing opaque
+
+
+def test_opaque_wisps_are_haze_and_a_detached_blob_is_not(clean_heads):
+    """Thin opaque arcs beside the head (wisps dense enough to count as solid) flag haze by their thin
+    material away from the head's body; an opaque disc there is a floater, not haze."""
+    yy, xx = (np.mgrid[:RES, :RES] + 0.5) / RES
+    ring = np.abs(np.hypot(xx - 0.86, yy - 0.35) - 0.11) < 0.6 / RES
+    arcs = (ring & (xx > 0.84)).astype(np.float64)
+    got = _check(clean_heads, beside(make_head(np.random.default_rng(114), "subj99999982"), arcs), "haze")
+    assert "thin material (wisps)" in got["detectors"]["haze"]["why"]
+    disc = (np.hypot(xx - 0.9, yy - 0.3) < 4.5 / RES).astype(np.float64)
+    by_key, _ = score_samples(clean_heads + [beside(make_head(np.random.default_rng(115), "subj99999981"), disc)])
+    blob = by_key["subj99999981"]
+    assert blob["detectors"]["haze"]["score"] < 0.5 and "floaters" in blob["flags"], blob["detectors"]["haze"]
 
 
 def test_face_detector_finds_a_photographed_face_on_the_back(clean_heads):
