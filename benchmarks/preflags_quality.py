@@ -316,8 +316,9 @@ def write_markdown(data: dict) -> str:
               "- These are the procedural generator's own injections, modelled on 3D-GAN failures (see the gallery); "
               "real GAN failures vary more, so treat the numbers as what the detectors can do, not what they will do.",
               "- Thresholds are dataset-relative: a dataset where most subjects share a defect makes it typical.",
-              "- The thresholds were chosen on heads of the generator before its sex and age cues (commit 60eed9e); "
-              "the datasets here were made by the generator of this run's commit.",
+              "- Most thresholds were chosen on heads of earlier generators (before the sex and age cues, commit "
+              "60eed9e; the janus eye cue and the haze thin-material cue on heads of commit 0f78f54, before the soft "
+              "light and the smaller eye openings); the datasets here were made by the generator of this run's commit.",
               *([f"- Learning: the pre-flag order already puts {L['bad_verdicts']} of the {L['defective']} defects "
                  f"among the first {L['verdicts']} subjects, so the {L['left_defective']} left are the ones the "
                  "pre-flag features barely see; learning moves some of them up the rest of the queue but cannot "
@@ -336,16 +337,17 @@ def write_markdown(data: dict) -> str:
               "(held-out recall 0/6); on the tuning seeds clean heads now stay below 2.3 and craters flag from 3. "
               "Craters on the very top of the head are still hidden from the equator views the detector reads.",
               "- janus: dlib's HOG detector finds no face on about one in five injected back faces whatever "
-              "their severity (on a 40-subject tuning set: mostly darker skin framed by hair); contrast "
-              "stretching or a gamma per view did not change that. dlib's CNN detector on the back view's head "
-              "(the view scaled to 192 px, 0.14 s a subject) finds 70 % of that set, 86 % together with HOG, and "
-              "nothing on 147 subjects without a janus. Larger scales (2.5x alone: 80 %), a second scale where "
-              "HOG scores above -0.9, and the back-diagonal views add nothing to the union with HOG on that set, "
-              "for 2-3x the time. What both detectors miss (obvious faces to a person: large eyes, nose, mouth, "
-              "often on darker skin) needs another cue. Tried briefly, without success: an eye-pair blob detector "
-              "(it missed the real eyes of the front view too), and dlib's face embedding of the back view "
-              "against the front view at the front's face box (cosine 0.88-0.96 with a janus, up to 0.92 "
-              "without; 0.9 s a subject).",
+              "their severity; contrast stretching or a gamma per view did not change that. dlib's CNN detector on "
+              "the back view's head (the view scaled to 192 px, 0.14 s a subject) adds some; larger scales and the "
+              "back-diagonal views add little for 2-3x the time. On 80 injected janus of tuning seed 4 the two "
+              "found 59 (74 %): what both miss are obvious faces to a person (large eyes, nose, mouth, often on "
+              "darker skin, framed by hair). OpenCV's Haar eye cascade, looking for a pair of eyes where a face "
+              "has them on the back view (0.02 s a subject), finds 16 of those 21 and fires on 2 of 350 other "
+              "subjects of seeds 0, 1 and 5 (a grey afro, a tightly textured crop); with it the janus flag finds "
+              "75 of the 80. Tried without success: a skin-coloured region with enclosed holes (hair of skin-like "
+              "colour, 16 % false alarms), matching the front view's face as a template on the back view (the "
+              "back face's proportions differ: clean backs matched better than faces), an eye-pair blob detector, "
+              "and dlib's face embedding of the back view against the front view.",
               "- At the default rate the baselines are tighter (fewer defects in them), so dataset-relative cues "
               "(blurry_back, seam, washed_out) flag a few more clean subjects; the face detector, an absolute "
               "score, does not move.", ""]

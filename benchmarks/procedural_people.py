@@ -237,8 +237,9 @@ def markdown(res: dict) -> str:
     lines += ["", f"## Attribute coverage ({COVERAGE_SEEDS} seeds, `sample_params` only)", ""]
     for key, shares in res["coverage"].items():
         lines.append(f"* **{key}**: " + ", ".join(f"{k} {100 * v:.1f} %" for k, v in shares.items()))
-    lines += ["", "Unnatural (dyed) hair is rare on purpose (2 % of draws); grey and white hair come with age; "
-              "facial hair only on male subjects.", "",
+    lines += ["", "Rare on purpose: unnatural (dyed) hair (2 % of draws), and red and platinum hair (3 % each of "
+              "the natural colours' draws before greying; rarer still among people). Grey and white hair come with "
+              "age; facial hair only on male subjects.", "",
               "## Contact sheet", "", f"![32 subjects, front and back]({NAME}.png)", ""]
     return "\n".join(lines)
 

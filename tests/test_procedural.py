@@ -369,7 +369,7 @@ def test_baked_beard_edge_matches_the_analytic_field():
 def test_sexes_differ_in_face_shape_and_brows_stay_visible():
     from datagen.generators.procedural import LUMA
 
-    params = [sample_params(subject_rng(0, i, STREAM_LATENT)) for i in range(400)]
+    params = [sample_params(subject_rng(0, i, STREAM_LATENT)) for i in range(2000)]
     male = [p for p in params if p["sex"] == "male"]
     female = [p for p in params if p["sex"] == "female"]
     med = lambda group, key: np.median([p[key] for p in group])  # noqa: E731
@@ -380,6 +380,8 @@ def test_sexes_differ_in_face_shape_and_brows_stay_visible():
     for p in params:
         assert np.asarray(p["brow_rgb"]) @ LUMA <= 0.55 * (np.asarray(p["skin_rgb"]) @ LUMA) + 1e-6
         assert p["upper_lip"] > 0 and p["lower_lip"] > 0 and p["eye_open"] > 0
+        # the widths the face's shape divides by or tapers to stay positive at the extremes of sex
+        assert p["chin_width"] > 0 and p["nose_width"] > 0.01 and p["brow_thickness"] > 0 and p["brow_arch"] >= 0
     # darker skin is exposed brighter, as a camera metering on the face would
     expo = {t: np.mean([p["exposure"] for p in params if p["skin_tone"] == t]) for t in ("I", "VI")}
     assert expo["I"] == 1.0 and 1.2 < expo["VI"] <= 1.35

@@ -218,11 +218,11 @@ def sample_params(rng: np.random.Generator, dimorphism: float = 1.0) -> dict:
     nose_length = u(0.07, 0.13) + 0.01 * masc
     mouth_y = eye_height - nose_length - u(0.04, 0.065)
     chin_y = mouth_y - u(0.08, 0.125) - 0.012 * masc
-    # Sexual dimorphism on top of the terms in ``masc`` below: -1.5 feminine .. +1.5 masculine (about
-    # +-0.9 for most people). Masculine faces: wider jaw and chin, heavier brow ridge and brows, lower
+    # Sexual dimorphism on top of the terms in ``masc`` below: -1 feminine .. +1 masculine (about +-0.9
+    # for most people; the ranges below assume |dim| <= 1). Masculine faces: wider jaw and chin, heavier brow ridge and brows, lower
     # and flatter brows, longer and wider nose, longer chin, thinner lips, narrower eyes. With it a
     # face recogniser places two people of different sex further apart than two of the same sex.
-    dim = 3.0 * (masc - 0.5) * dimorphism
+    dim = float(np.clip(3.0 * (masc - 0.5), -1.0, 1.0)) * dimorphism
     nose_length += 0.016 * dim
     chin_y -= 0.02 * dim
     light_az = u(-0.6, 0.6)
@@ -237,7 +237,7 @@ def sample_params(rng: np.random.Generator, dimorphism: float = 1.0) -> dict:
         "jaw_width": u(0.075, 0.135) + 0.025 * masc + 0.025 * weight + 0.04 * dim,
         "jaw_angle_y": u(-0.17, -0.12),
         "chin_y": chin_y,
-        "chin_width": u(0.018, 0.04) + 0.018 * masc + 0.024 * dim,
+        "chin_width": max(0.012, u(0.018, 0.04) + 0.018 * masc + 0.024 * dim),  # > 0: the jaw tapers to it
         "chin_projection": u(-0.012, 0.018),
         "brow_ridge": float(np.clip(u(0.0, 0.45) + 0.6 * masc * u(0.4, 1.0) + 0.6 * dim, 0.0, 1.0)),
         "forehead_slope": u(0.0, 1.0) * (0.4 + 0.6 * masc),
@@ -251,7 +251,7 @@ def sample_params(rng: np.random.Generator, dimorphism: float = 1.0) -> dict:
         "iris": iris, "iris_rgb": list(np.clip(np.asarray(IRIS_COLOURS[iris]) * u(0.85, 1.15), 0, 1)),
         "nose_length": nose_length,
         "nose_projection": u(0.025, 0.075) + 0.008 * masc,
-        "nose_width": u(0.02, 0.058) + 0.006 * masc + 0.012 * dim,
+        "nose_width": max(0.014, u(0.02, 0.058) + 0.006 * masc + 0.012 * dim),
         "nose_bridge": u(0.011, 0.017) + 0.003 * masc,
         "nose_tip": u(0.013, 0.022),
         "nose_hump": u(0.0, 1.0) * (0.3 + 0.7 * masc),
@@ -273,7 +273,7 @@ def sample_params(rng: np.random.Generator, dimorphism: float = 1.0) -> dict:
         "under_eye": u(0.03, 0.10) + 0.06 * old,
         "skin_waves": [[u(0.01, 0.025), list(rng.normal(0, 22, 3)), u(0, 6.3)] for _ in range(4)],
         "facial_hair": facial_hair,
-        "brow_thickness": u(0.004, 0.013) + 0.004 * masc + 0.006 * dim,
+        "brow_thickness": max(0.003, u(0.004, 0.013) + 0.004 * masc + 0.006 * dim),
         "brow_arch": u(0.002, 0.012) * (1.2 - 0.6 * masc) * (1.0 - dim),
         "brow_length": u(0.05, 0.066),
         "brow_height": u(0.027, 0.05) - 0.012 * dim,
