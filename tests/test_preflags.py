@@ -199,20 +199,6 @@ def blurry_back(s: SubjectSample, sigma=1.6) -> SubjectSample:
     return SubjectSample(s.key, s.metadata, rgb, s.alpha, s.depth, {})
 
 
-def hazy(s: SubjectSample, level=0.3) -> SubjectSample:
-    """A semi-transparent grey cloud beside the head in every view."""
-    yy, xx = np.mgrid[:RES, :RES] / RES
-    cloud = np.clip(1 - np.hypot(xx - 0.85, yy - 0.35) / 0.16, 0, 1) * level
-    alpha, rgb = [], []
-    for a, c in zip(s.alpha, s.rgb):
-        a0 = a.astype(np.float64) / 255
-        a1 = np.maximum(a0, cloud * (a0 < 0.5))
-        add = (a1 - a0)[..., None]
-        rgb.append(np.clip(np.rint(c * (1 - add) + 150 * add), 0, 255).astype(np.uint8))
-        alpha.append(np.clip(np.rint(a1 * 255), 0, 255).astype(np.uint8))
-    return SubjectSample(s.key, s.metadata, rgb, alpha, s.depth, {})
-
-
 def beside(s: SubjectSample, shape: np.ndarray, grey=150) -> SubjectSample:
     """``shape`` (alpha in [0, 1], RES x RES) drawn opaque-over where the head is not, in every view."""
     alpha, rgb = [], []
@@ -223,6 +209,12 @@ def beside(s: SubjectSample, shape: np.ndarray, grey=150) -> SubjectSample:
         rgb.append(np.clip(np.rint(c * (1 - add) + grey * add), 0, 255).astype(np.uint8))
         alpha.append(np.clip(np.rint(a1 * 255), 0, 255).astype(np.uint8))
     return SubjectSample(s.key, s.metadata, rgb, alpha, s.depth, {})
+
+
+def hazy(s: SubjectSample, level=0.3) -> SubjectSample:
+    """A semi-transparent grey cloud beside the head in every view."""
+    yy, xx = np.mgrid[:RES, :RES] / RES
+    return beside(s, np.clip(1 - np.hypot(xx - 0.85, yy - 0.35) / 0.16, 0, 1) * level)
 
 
 def face_on_the_back(s: SubjectSample) -> SubjectSample:

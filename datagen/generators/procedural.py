@@ -219,9 +219,10 @@ def sample_params(rng: np.random.Generator, dimorphism: float = 1.0) -> dict:
     mouth_y = eye_height - nose_length - u(0.04, 0.065)
     chin_y = mouth_y - u(0.08, 0.125) - 0.012 * masc
     # Sexual dimorphism on top of the terms in ``masc`` below: -1 feminine .. +1 masculine (about +-0.9
-    # for most people; the ranges below assume |dim| <= 1). Masculine faces: wider jaw and chin, heavier brow ridge and brows, lower
-    # and flatter brows, longer and wider nose, longer chin, thinner lips, narrower eyes. With it a
-    # face recogniser places two people of different sex further apart than two of the same sex.
+    # for most people; the ranges below assume |dim| <= 1). Masculine faces: wider jaw and chin, heavier
+    # brow ridge and brows, lower and flatter brows, longer and wider nose, longer chin, thinner lips,
+    # narrower eyes. With it a face recogniser places two people of different sex further apart than two
+    # of the same sex.
     dim = float(np.clip(3.0 * (masc - 0.5), -1.0, 1.0)) * dimorphism
     nose_length += 0.016 * dim
     chin_y -= 0.02 * dim
