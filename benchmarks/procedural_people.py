@@ -53,8 +53,9 @@ IDENTITY_SEEDS = (0, 11)  # identity is measured on subjects of both (seed 0 was
 COVERAGE_SEEDS = 1000
 SHEET_SUBJECTS = 32
 SAME_PERSON = 0.6  # dlib's threshold on the embedding distance
-# Earlier generators to compare against: the last mannequin, and the last with hard light and goggle eyes.
-BASELINES = ("b91c245", "0f78f54")
+# Earlier generators to compare against: the last mannequin, and the last before the face-detection fixes
+# (caps high on the forehead, grey sclera, wire glasses frames).
+BASELINES = ("b91c245", "c088109")
 ROOT = Path(__file__).resolve().parents[1]
 ATTRIBUTES = ("hair_style", "hair_colour", "skin_tone", "sex", "age_bracket", "facial_hair", "glasses", "cap",
               "makeup", "neckline", "iris")

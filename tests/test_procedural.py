@@ -281,9 +281,11 @@ def test_protocol_views_render(subject):
 
 
 def brim_columns(alpha, gap=3):
-    """{column: rows} of the columns whose first opaque band (the brim, from above) has background below it."""
+    """{column: rows} of the columns in the front half (the face looks toward column 0 at yaw 90) whose first
+    opaque band (the brim, from above) has background below it; the back half is left out, where the cap's
+    back edge stands a little off the hair."""
     out = {}
-    for c in range(alpha.shape[1]):
+    for c in range(alpha.shape[1] // 2):
         col = alpha[:, c]
         solid = np.flatnonzero(col > 0.5)
         if not solid.size:

@@ -105,6 +105,12 @@ def _waves(p, waves):
 # ---------------------------------------------------------------------------------------------
 # Subject parameters
 
+def _frame_rgb(frame: str, skin) -> list:
+    rgb, wire = GLASSES_FRAMES[frame]
+    rgb = np.asarray(rgb)
+    return list(WIRE_COVER * rgb + (1 - WIRE_COVER) * np.asarray(skin) if wire else rgb)
+
+
 def _pick(rng, options, probs=None):
     if probs is not None:
         probs = np.asarray(probs, dtype=np.float64)
@@ -128,6 +134,12 @@ IRIS_COLOURS = {"dark_brown": [0.16, 0.09, 0.05], "brown": [0.33, 0.19, 0.08], "
 CLOTHING_COLOURS = [[0.10, 0.11, 0.14], [0.92, 0.92, 0.90], [0.20, 0.27, 0.45], [0.55, 0.12, 0.13],
                     [0.28, 0.40, 0.26], [0.55, 0.55, 0.57], [0.80, 0.66, 0.36], [0.35, 0.22, 0.42],
                     [0.60, 0.75, 0.85], [0.85, 0.45, 0.30]]
+# Glasses frames: (albedo, wire). A wire frame (metal, about 1 mm) is thinner than the rim the grid can
+# hold (>= 2 voxels, ~4 mm): its colour is mixed with the skin's by the share of the rim a wire covers, as
+# a camera's pixels would mix them (drawn at full strength, bright rims on dark skin hid the eyes).
+GLASSES_FRAMES = {"black": ([0.05, 0.05, 0.05], False), "gold": ([0.55, 0.45, 0.25], True),
+                  "silver": ([0.6, 0.6, 0.65], True), "tortoise": ([0.35, 0.12, 0.1], False)}
+WIRE_COVER = 0.35
 AGE_BRACKETS = ((18, 30, "18-29"), (30, 45, "30-44"), (45, 60, "45-59"), (60, 200, "60+"))
 # Hair style probabilities by sex (HAIR_STYLES order).
 STYLE_PROBS = {"female": [0.02, 0.05, 0.10, 0.13, 0.14, 0.24, 0.13, 0.11, 0.08],
@@ -291,7 +303,7 @@ def sample_params(rng: np.random.Generator, dimorphism: float = 1.0) -> dict:
         "hair_seed": [list(rng.normal(0.0, 1.0, 3)) for _ in range(6)],
         "glasses": bool(rng.uniform() < 0.12 + 0.12 * old),
         "glasses_shape": _pick(rng, ["round", "rectangular"]),
-        "glasses_rgb": list(_pick(rng, [[0.05, 0.05, 0.05], [0.55, 0.45, 0.25], [0.6, 0.6, 0.65], [0.35, 0.12, 0.1]])),
+        "glasses_rgb": _frame_rgb(_pick(rng, list(GLASSES_FRAMES)), skin),
         "cap": bool(rng.uniform() < 0.1),
         "cap_rgb": list(rng.uniform(0.05, 0.9, 3)),
         "clothing_rgb": list(np.clip(np.asarray(_pick(rng, CLOTHING_COLOURS)) * rng.uniform(0.85, 1.1, 3), 0, 1)),
@@ -498,7 +510,9 @@ def _eyes(p, P, A):
         look = F.normalize(p - _t(c), dim=-1)
         cosang = look[:, 2]
         iris_edge = 0.87  # cosine of the iris's angular radius (iris radius 0.0143 head units)
-        rgb = _t([0.86, 0.82, 0.78]).expand(p.shape[0], 3) * (0.85 + 0.15 * _smoothstep(0.5, 0.8, cosang))[:, None]
+        # The sclera as photos show it (the lids shade it): a light grey, not paper white, which on dark
+        # skin stood out as two bright dots where a face has a dark band.
+        rgb = _t([0.7, 0.66, 0.63]).expand(p.shape[0], 3) * (0.85 + 0.15 * _smoothstep(0.5, 0.8, cosang))[:, None]
         iris = _t(P["iris_rgb"]) * (0.75 + 0.5 * ((cosang - iris_edge) / (1 - iris_edge)).clamp(0, 1))[:, None]
         iris = iris * (1.0 + 0.15 * torch.sin(90.0 * torch.atan2(look[:, 1], look[:, 0])))[:, None]
         rgb = torch.where((cosang > iris_edge)[:, None], iris, rgb)
@@ -603,7 +617,7 @@ def _skin_rgb(p, P, A):
     blush = blush + 0.12 * _smoothstep(0.15, 0.19, ax) * _gauss(y - P["ear_y"], 0.07)
     rgb = rgb * (1.0 - blush[:, None] * _t([0.0, 0.45, 0.4]))
     under = P["under_eye"] * _gauss(ax - ex, 0.03) * _gauss(y - (E - 0.03), 0.013) * front
-    socket = 0.18 * _gauss(ax - ex, 0.04) * _gauss(y - (E + 0.012), 0.022) * front
+    socket = 0.3 * _gauss(ax - ex, 0.04) * _gauss(y - (E + 0.012), 0.022) * front
     rgb = rgb * (1.0 - (under + socket)[:, None] * _t([0.55, 0.65, 0.55]))
     if P["makeup"]:
         lid = 0.5 * _gauss(ax - ex - 0.004, 0.034) * _gauss(y - (E + 0.02), 0.011) * front
@@ -819,11 +833,12 @@ def _cap_sdf(p, P):
     cy = cc[1]
     th = max(P["hair_thickness"], 0.0) * (0.5 if P["hair_style"] == "afro" else 1.0) + 0.015
     dome = sd_ellipsoid(p, cc, (rx + th, ry + th, rz + th))
-    # The band sits on the forehead about a brow's height above the brows (lower, it hid them).
-    dome = smax(dome, (cy + 0.065 - 0.1 * _smoothstep(-0.1, -0.2, p[:, 2])) - p[:, 1], 0.01)
+    # The band sits high on the forehead, as most people wear a cap: lower, it hid the brows and the
+    # upper face (a face detector then missed about half the faces in caps).
+    dome = smax(dome, (cy + 0.12 - 0.1 * _smoothstep(-0.1, -0.2, p[:, 2])) - p[:, 1], 0.01)
     # Brim: a flat plate of constant thickness with a rounded edge (an exact distance), tilted down.
     tilt = 0.18
-    yb = cy + 0.07
+    yb = cy + 0.125
     zb = 0.115
     q_y = (p[:, 1] - yb) * math.cos(tilt) + (p[:, 2] - zb) * math.sin(tilt)
     q_z = -(p[:, 1] - yb) * math.sin(tilt) + (p[:, 2] - zb) * math.cos(tilt)
