@@ -59,7 +59,12 @@ TUNED_ON = ("seeds 0 and 1 (96 subjects each, these settings) and seed 2 (40 sub
             "22, so they are not held out any more. The seam's depth-step cue was set on seeds 0 and 1 and 40 "
             "injected seams of seed 2, heads of the generator with sex and age cues. The janus eye-pair cue was set on "
             "80 injected janus of seed 4 (all janus) and the subjects of seeds 0, 1 and 5 (160 clean); the haze "
-            "detector's thin-material share on seed 6 (128 subjects, 25 % haze or washed_out) and seeds 0, 1 and 5")
+            "detector's thin-material share on seed 6 (128 subjects, 25 % haze or washed_out) and seeds 0, 1 and 5. "
+            "Then, with heads of the generator that caps, sclera and glasses frames changed (all tuning seeds made "
+            "again): the janus face thresholds and the eye pair's skin test, washed_out's features and scale, and "
+            "blurry_back's scale floor were set on seeds 0 and 1 (96 subjects each at 25 %), 4 (80 janus), 5 (160 clean), "
+            "6 (as above) and 8 (96 subjects, 25 % blurry backs); seeds 24-26, held out before, were looked at and "
+            "are not any more")
 GOALS = {"any_precision": 0.9, "any_recall": 0.9, "janus_recall": 0.9, "class_recall": 0.85, "clean_flagged": 0.03,
          "learn_recall_at_30": 0.95}
 
@@ -356,12 +361,12 @@ def write_markdown(data: dict) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--seeds", type=int, nargs="+", default=[24, 25], help="held-out seeds")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[27, 28], help="held-out seeds")
     ap.add_argument("--tune-seed", type=int, default=0)
     ap.add_argument("--subjects", type=int, default=96)
     ap.add_argument("--resolution", type=int, default=128)
     ap.add_argument("--defect-rate", type=float, default=0.25)
-    ap.add_argument("--learn-seed", type=int, default=26)
+    ap.add_argument("--learn-seed", type=int, default=29)
     ap.add_argument("--learn-subjects", type=int, default=600, help="0 to skip the learning section")
     ap.add_argument("--learn-resolution", type=int, default=128)
     ap.add_argument("--verdicts", type=int, default=200)

@@ -476,12 +476,13 @@ def test_face_detector_finds_a_photographed_face_on_the_back(clean_heads):
 
 
 def test_head_crop_is_the_head_not_the_shoulders():
-    from labeling_tool.preflags.janus import head_crop
+    from labeling_tool.preflags.janus import head_crop, head_extent
 
     yy, xx = np.mgrid[:128, :128]
     mask = (yy - 45) ** 2 + (xx - 64) ** 2 < 30 ** 2          # a head: columns 35-93, rows 16-74
     mask |= (yy > 90) & (np.abs(xx - 64) < 60)                # shoulders 119 px wide, to the frame (row 127)
     rgb = np.dstack([xx, yy, np.zeros_like(xx)]).astype(np.uint8)
+    assert head_extent(mask) == (16, 112, 35, 93)
     crop = head_crop(rgb, mask)
     pad = int(0.06 * 128)
     assert crop[0, 0, 0] == 35 - pad and crop[0, -1, 0] == 93 + pad  # columns of the head, with the margin
@@ -511,6 +512,10 @@ def test_eye_pair_where_a_face_has_its_eyes():
     assert eye_pair(back, mask) == 0
     assert eye_pair(with_face(26), mask) >= 8
     assert eye_pair(with_face(70), mask) == 0
+    # Given the front view's face colour, a pair counts only with skin of that colour between the eyes.
+    skin = np.median(np.asarray(face)[30:40, 20:36].reshape(-1, 3), 0)
+    assert eye_pair(with_face(26), mask, skin) >= 8
+    assert eye_pair(with_face(26), mask, np.array([60.0, 90.0, 200.0])) == 0
     base = {"sim": (0.10, 0.05), "colour": (0.20, 0.05), "relief": (math.log(1e-4), 0.5)}
     record = {"back": 4, "front": 0, "sim": 0.10, "colour": 0.20, "relief": 1e-4, "faces": {4: -1.0}, "cnn": -1.0}
     assert Janus().score(dict(record, eyes=1), base, 0, []).score < 0.5
