@@ -523,6 +523,32 @@ def test_eye_pair_where_a_face_has_its_eyes():
     assert flag.score >= 0.5 and "a pair of eyes on v04 (3 detections each" in flag.why
 
 
+def test_back_diagonal_views_need_a_full_face_detection():
+    """On the back view a partial face (HOG -0.2) flags; on a back-diagonal view, where the real face's
+    cheek and nose show at the edge, the same score does not, and a full detection (0.3) does."""
+    from labeling_tool.preflags.janus import Janus
+
+    base = {"sim": (0.10, 0.05), "colour": (0.20, 0.05), "relief": (math.log(1e-4), 0.5)}
+    record = {"back": 4, "front": 0, "sim": 0.10, "colour": 0.20, "relief": 1e-4, "cnn": -1.0, "eyes": 0}
+    assert Janus().score(dict(record, faces={4: -0.2, 5: -1.0}), base, 0, []).score >= 0.5
+    assert Janus().score(dict(record, faces={4: -1.0, 5: -0.2}), base, 0, []).score < 0.5
+    flag = Janus().score(dict(record, faces={4: -0.9, 5: 0.3}), base, 0, [])
+    assert flag.score >= 0.5 and "face detector on v05" in flag.why and "flag at 0)" in flag.why
+
+
+def test_robust_below_ignores_what_defects_add_above():
+    """The scale of a feature that defects only raise comes from the subjects below the median: clean
+    subjects alone give their sigma; with a quarter of the subjects far above, the scale grows less than
+    a two-sided MAD does (only through the median's shift)."""
+    from labeling_tool.preflags.imaging import robust, robust_below
+
+    clean = np.random.default_rng(0).normal(1.0, 0.1, 300)
+    mixed = np.concatenate([clean, np.full(100, 3.0)])
+    assert 0.08 < robust_below(clean, 1e-3)[1] < 0.12
+    assert robust_below(mixed, 1e-3)[1] < 0.9 * robust(mixed, 1e-3)[1]
+    assert robust_below([], 0.05) == (0.0, 0.05) and robust_below([2.0, 2.0], 0.05) == (2.0, 0.05)
+
+
 def test_janus_not_applicable_without_back_views():
     rng = np.random.default_rng(5)
     heads = [make_head(rng, subject_id(i), protocol="frontal") for i in range(6)]
