@@ -362,8 +362,11 @@ def write_markdown(data: dict) -> str:
               "reach. Pale, grey-haired people in light clothes are the nearest clean subjects (4 of 68 clean "
               "subjects of tuning seed 1 reach z 3.3-4.9).",
               "- At the default rate the baselines are tighter (fewer defects in them), so dataset-relative cues "
-              "(blurry_back, seam, washed_out) flag a few more clean subjects; the face detector, an absolute "
-              "score, does not move.", ""]
+              "(blurry_back, seam, washed_out) can flag more clean subjects than at 25 %; the face detector, an "
+              "absolute score, does not move.",
+              "- Noticed in the tuning seeds, left as they are: a ponytail's gap to the neck and, on a few long "
+              "hooked noses, a gap between the nose's tip and the lip read as see-through holes (2 clean subjects "
+              "of 483); a bald back or a nape can score -0.08 on dlib's HOG detector (1 of 483).", ""]
     return "\n".join(lines)
 
 
