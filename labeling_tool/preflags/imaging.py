@@ -44,14 +44,16 @@ def robust_below(values, floor: float) -> tuple[float, float]:
 
 
 def robust_tail(values, floor: float) -> tuple[float, float]:
-    """(median, scale) where the scale is the larger of 1.4826 * MAD and the spread up to the 90th
+    """(median, scale) where the scale is the larger of 1.4826 * MAD and the spread up to the 80th
     percentile (as a normal's sigma): a feature that a minority of subjects has naturally (e.g. a cap's
-    brim seen from the front) widens the scale instead of looking like an outlier."""
+    brim seen from the front) widens the scale instead of looking like an outlier. The 80th, not the
+    90th: where one defect is common (a dataset with 19 % craters) the 90th percentile is the defects'
+    own and hid them (1 of 18 found; 18 with the 80th)."""
     med, scale = robust(values, floor)
     x = np.asarray(values, dtype=np.float64)
     x = x[np.isfinite(x)]
     if x.size:
-        scale = max(scale, float(np.quantile(x, 0.9) - med) / 1.2816)
+        scale = max(scale, float(np.quantile(x, 0.8) - med) / 0.8416)
     return med, scale
 
 
