@@ -20,10 +20,15 @@ def ramp(m: float, t: float, s: float) -> float:
     return float(min(1.0, 0.5 + 0.5 * (m - t) / max(s - t, 1e-12)))
 
 
+def _finite(values) -> np.ndarray:
+    """The finite values (None and NaN left out) as float64."""
+    x = np.asarray([v for v in values if v is not None], dtype=np.float64)
+    return x[np.isfinite(x)]
+
+
 def robust(values, floor: float) -> tuple[float, float]:
     """(median, 1.4826 * MAD) of the finite values, the scale at least ``floor``."""
-    x = np.asarray([v for v in values if v is not None], dtype=np.float64)
-    x = x[np.isfinite(x)]
+    x = _finite(values)
     if x.size == 0:
         return 0.0, floor
     med = float(np.median(x))
@@ -34,8 +39,7 @@ def robust_below(values, floor: float) -> tuple[float, float]:
     """(median, scale) for a feature that defects only raise: the scale is 1.4826 times the median
     distance below the median, so the defects (all above) widen it only through the median's shift (on
     a tuning dataset with 16 % faded textures a two-sided MAD was a third larger and hid them)."""
-    x = np.asarray([v for v in values if v is not None], dtype=np.float64)
-    x = x[np.isfinite(x)]
+    x = _finite(values)
     if x.size == 0:
         return 0.0, floor
     med = float(np.median(x))
@@ -50,8 +54,7 @@ def robust_tail(values, floor: float) -> tuple[float, float]:
     90th: where one defect is common (a dataset with 19 % craters) the 90th percentile is the defects'
     own and hid them (1 of 18 found; 18 with the 80th)."""
     med, scale = robust(values, floor)
-    x = np.asarray(values, dtype=np.float64)
-    x = x[np.isfinite(x)]
+    x = _finite(values)
     if x.size:
         scale = max(scale, float(np.quantile(x, 0.8) - med) / 0.8416)
     return med, scale

@@ -306,16 +306,15 @@ class Janus(Detector):
         faces = j.get("faces") or {}
         if not faces:
             return cue
-        def hog(view):  # the back view's own threshold, or the back-diagonal views'
-            at = t.face if view == j["back"] else t.face_diagonal
-            return ramp(faces[view] - NO_FACE, at - NO_FACE, t.face_sat - NO_FACE), at
-        view = max(faces, key=lambda k: (hog(k)[0], faces[k]))
-        best, at = faces[view], hog(view)[1]
+        at = {k: t.face if k == j["back"] else t.face_diagonal for k in faces}  # the back view's own threshold
+        hog = {k: ramp(faces[k] - NO_FACE, at[k] - NO_FACE, t.face_sat - NO_FACE) for k in faces}
+        view = max(faces, key=lambda k: (hog[k], faces[k]))
+        best = faces[view]
         cnn = j.get("cnn", NO_FACE)
         eyes = j.get("eyes", 0)
-        face = max(hog(view)[0], ramp(cnn - NO_FACE, t.cnn - NO_FACE, t.cnn_sat - NO_FACE), ramp(eyes, t.eyes, t.eyes_sat))
+        face = max(hog[view], ramp(cnn - NO_FACE, t.cnn - NO_FACE, t.cnn_sat - NO_FACE), ramp(eyes, t.eyes, t.eyes_sat))
         seen = (f"face detector on {view_name(view)} (yaw {j.get('yaw', {}).get(view, 0):.0f}): score {best:.2f} "
-                f"(flag at {at:g})") if best > NO_FACE else "no face found by HOG on the back views"
+                f"(flag at {at[view]:g})") if best > NO_FACE else "no face found by HOG on the back views"
         seen += (f"; CNN face detector on {view_name(j['back'])}: confidence {cnn:.2f} (flag at {t.cnn:g})"
                  if cnn > NO_FACE else "; none by the CNN on the back view")
         seen += (f"; a pair of eyes on {view_name(j['back'])} ({eyes} detections each, flag at {t.eyes})" if eyes

@@ -56,8 +56,9 @@ class WashedOut(Detector):
         if not (np.isfinite(m["sat98"]) and np.isfinite(m["grey1"])):
             return Flag(0.0, "no colour views to measure")
         med, scale = base["fade"]
-        z = (self._fade(m) - med) / scale
+        fade = self._fade(m)
+        z = (fade - med) / scale
         t = self.settings
         return Flag(ramp(z, t.z, t.z_sat),
                     f"most saturated 2 % at saturation {m['sat98']:.2f}, darkest 1 % at grey {m['grey1']:.2f} "
-                    f"(fade {self._fade(m):.2f}, dataset median {med:.2f}, scale {scale:.2f}); z {z:.1f} (flag at {t.z:g})", z)
+                    f"(fade {fade:.2f}, dataset median {med:.2f}, scale {scale:.2f}); z {z:.1f} (flag at {t.z:g})", z)
