@@ -75,6 +75,27 @@ def peak_rss_since_reset_mb() -> float:
     return peak_rss_mb()
 
 
+def device_sync(device: str) -> None:
+    """Wait for the device's queued work (CUDA), so that a clock reading after it is the work's."""
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def memory_start(device: str) -> float:
+    """Reset the peak-memory reading of ``device`` (CUDA: torch's allocator; CPU: this process's
+    resident set); the memory in use now, MiB."""
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+        torch.cuda.reset_peak_memory_stats()
+        return torch.cuda.memory_allocated() / 2 ** 20
+    return reset_peak_rss()
+
+
+def memory_peak(device: str) -> float:
+    """Peak memory since :func:`memory_start`, MiB."""
+    return torch.cuda.max_memory_allocated() / 2 ** 20 if device.startswith("cuda") else peak_rss_since_reset_mb()
+
+
 def peak_rss_mb() -> float:
     """Peak resident set size of this process so far (MiB)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux

@@ -29,7 +29,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from benchmarks.common import (REPORTS, machine_info, peak_rss_since_reset_mb, pyplot, reset_peak_rss,  # noqa: E402
+from benchmarks.common import (REPORTS, device_sync, machine_info, memory_peak, memory_start, pyplot,  # noqa: E402
                                run_child, write_report)
 from panolam.encoder import DinoV2ShapedStub  # noqa: E402
 
@@ -43,41 +43,22 @@ def portrait() -> torch.Tensor:
     return torch.from_numpy(astronaut().copy()).float().div(255).permute(2, 0, 1)[None]
 
 
-def _sync(device: str) -> None:
-    if device.startswith("cuda"):
-        torch.cuda.synchronize()
-
-
-def _memory_start(device: str) -> float:
-    """Reset the peak-memory reading; the memory in use now, MiB."""
-    if device.startswith("cuda"):
-        torch.cuda.synchronize()
-        torch.cuda.reset_peak_memory_stats()
-        return torch.cuda.memory_allocated() / 2 ** 20
-    return reset_peak_rss()
-
-
-def _memory_peak(device: str) -> float:
-    """Peak memory since :func:`_memory_start`, MiB."""
-    return torch.cuda.max_memory_allocated() / 2 ** 20 if device.startswith("cuda") else peak_rss_since_reset_mb()
-
-
 def _timed(fn, repeats: int, device: str) -> tuple[float, float]:
     """Median seconds of ``repeats`` calls after one warm-up, and the peak memory the calls added (MiB).
 
     The peak counts from before the warm-up, whose allocations are the ones that grow the process
     (later calls reuse what the allocator kept); each measurement runs in a process of its own.
     """
-    base = _memory_start(device)
+    base = memory_start(device)
     fn()
     times = []
     for _ in range(repeats):
-        _sync(device)
+        device_sync(device)
         t0 = time.perf_counter()
         fn()
-        _sync(device)
+        device_sync(device)
         times.append(time.perf_counter() - t0)
-    return statistics.median(times), _memory_peak(device) - base
+    return statistics.median(times), memory_peak(device) - base
 
 
 def child(config: dict) -> dict:

@@ -7,6 +7,7 @@ says it was skipped).
     python benchmarks/rasterizer_speed.py            # full run, a few minutes on 2 cores
     python benchmarks/rasterizer_speed.py --quick    # smoke run, under 2 minutes
     python benchmarks/rasterizer_speed.py --report-only [--quick]   # rewrite markdown and plot from the JSON
+    python benchmarks/rasterizer_speed.py --constants [--report-only]   # the constants' PSNR, under a minute
 
 Scenes look like a head avatar: Gaussians on a noisy ellipsoid (semi-axes 0.20, 0.25, 0.22) around
 the origin, scales log-uniform in [0.003, 0.01], random rotations, opacities uniform in [0.2, 1],
@@ -19,10 +20,16 @@ render, so it counts everything rendering added (tensors, allocator caches, auto
 fresh process per configuration keeps earlier configurations out of the peak. The baseline
 "dense tiles" is the straightforward approach: 16 px tiles, a Python loop over tiles, dense
 (pixels x Gaussians) tensors per tile and autograd through everything.
+
+``--constants`` measures what aligning the rasterizer's constants with gsplat's changed (alpha
+clamp 0.99 -> 0.999, tile box 3 sigma of the major axis -> gsplat's opacity-aware 3.33 sigma per
+axis): PSNR of the images rendered with the former constants, and with each change alone, against
+today's (gsplat's), on four heads at 256 px (writes ``benchmarks/reports/rasterizer_constants.*``).
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -35,8 +42,9 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import panolam.rasterizer as rasterizer  # noqa: E402
 from benchmarks.common import (REPORTS, benchmark_parser, command_line, load_or_measure, machine_info,  # noqa: E402
-                               peak_rss_mb, pyplot, report_name, reproduce, rss_mb, run_child)
+                               peak_rss_mb, psnr_db, pyplot, report_name, reproduce, rss_mb, run_child)
 from datagen.cameras import camera_position, fov_to_focal, intrinsics, look_at, pixel_intrinsics  # noqa: E402
 from panolam.rasterizer import (ALPHA_MAX, ALPHA_MIN, BLOCK, T_MIN, bin_gaussians, project, rasterize,  # noqa: E402
                                 tile_ranges)
@@ -56,14 +64,15 @@ QUICK = {"counts": (5_000, 20_000), "resolutions": (128, 256), "rounds": 1, "rep
 # Scene and the dense baseline
 
 
-def head_scene(n: int, seed: int = 0) -> dict:
-    """n head-avatar-like Gaussians (see the module docstring), float32."""
+def head_scene(n: int, seed: int = 0, opacity=(0.2, 1.0), scale=(0.003, 0.01)) -> dict:
+    """n head-avatar-like Gaussians (see the module docstring; opacities uniform in ``opacity``, scales
+    log-uniform in ``scale``), float32."""
     g = torch.Generator().manual_seed(seed)
     direction = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
     means = direction * torch.tensor([0.20, 0.25, 0.22]) * (1 + 0.03 * torch.randn(n, 1, generator=g))
-    log_scale = math.log(0.003) + (math.log(0.01) - math.log(0.003)) * torch.rand(n, 3, generator=g)
+    log_scale = math.log(scale[0]) + (math.log(scale[1]) - math.log(scale[0])) * torch.rand(n, 3, generator=g)
     return dict(means=means, quats=torch.nn.functional.normalize(torch.randn(n, 4, generator=g), dim=-1),
-                scales=log_scale.exp(), opacities=0.2 + 0.8 * torch.rand(n, generator=g),
+                scales=log_scale.exp(), opacities=opacity[0] + (opacity[1] - opacity[0]) * torch.rand(n, generator=g),
                 colors=torch.rand(n, 3, generator=g))
 
 
@@ -141,7 +150,7 @@ def child(config: dict) -> dict:
         for leaf in leaves.values():
             leaf.grad = None
     out = {"forward_s": forward_s, "backward_s": backward_s, "process_cpu_s": cpu_s, "peak_mb": peak_rss_mb() - base_mb,
-           "alpha_mean": float(alpha.mean()), "torch_threads": torch.get_num_threads()}
+           "alpha_mean": float(alpha.detach().mean()), "torch_threads": torch.get_num_threads()}
     if config["variant"] == "torch":
         with torch.no_grad():
             proj = project(*(scene[k] for k in ("means", "quats", "scales", "opacities")), view, K, r, r)
@@ -379,13 +388,118 @@ def write_reports(results: dict) -> None:
     print(f"wrote {stem}.md")
 
 
+# ------------------------------------------------------------------------------------------------
+# Constants: the former ones against gsplat's
+
+
+CONSTANTS_NAME = "rasterizer_constants"
+CONSTANTS_RESOLUTION = 256
+
+
+def three_sigma_radii(cov2d, opacities):
+    """The former tile box: a square of half size ``ceil(3 sqrt(lambda_max(cov2d)))`` px (the reference
+    3DGS rule, ``mid^2 - det`` floored at 0.1); same signature as ``rasterizer.tile_radii``."""
+    a, b, c = cov2d.unbind(-1)
+    r = torch.ceil(3.0 * torch.sqrt(0.5 * (a + c) + torch.sqrt((0.25 * (a - c) ** 2 + b * b).clamp_min(0.1))))
+    return torch.stack([r, r], -1)
+
+
+# Name -> (alpha clamp, tile box rule); each is rendered and compared with today's constants.
+CONSTANT_VARIANTS = {
+    "former (0.99, 3 sigma box)": (0.99, three_sigma_radii),
+    "alpha clamp 0.999 only": (0.999, three_sigma_radii),
+    "gsplat box only": (0.99, rasterizer.tile_radii),
+}
+
+
+@contextlib.contextmanager
+def rasterizer_constants(alpha_max: float, radii_rule):
+    """Render with another alpha clamp and tile box rule (module attributes, restored on exit)."""
+    saved = rasterizer.ALPHA_MAX, rasterizer.tile_radii
+    rasterizer.ALPHA_MAX, rasterizer.tile_radii = alpha_max, radii_rule
+    try:
+        yield
+    finally:
+        rasterizer.ALPHA_MAX, rasterizer.tile_radii = saved
+
+
+def constant_scenes():
+    """(name, Gaussians dict, background (3,)) of the four heads, float32."""
+    from panolam.config import preset
+    from panolam.model import PanoLAM
+
+    torch.manual_seed(0)
+    model = PanoLAM(preset("tiny")).eval()
+    with torch.no_grad():
+        dense = model(torch.full((1, 3, 128, 128), 0.5)).dense
+    yield ("PanoLAM `tiny` at initialisation over white (4,992 Gaussians, opacity 0.5: training's first renders)",
+           {k: getattr(dense, k)[0] for k in ("means", "quats", "scales", "opacities", "colors")}, torch.ones(3))
+    yield ("procedural head over black (20K Gaussians, opacities U[0.2, 1])", head_scene(20_000), torch.zeros(3))
+    yield ("opaque procedural head over black (20K Gaussians, opacities U[0.95, 1]: a converged surface)",
+           head_scene(20_000, opacity=(0.95, 1.0)), torch.zeros(3))
+    yield ("coarse opaque procedural head over black (2K Gaussians 5x larger, 4 to 14 px sigma, opacities "
+           "U[0.95, 1])", head_scene(2_000, opacity=(0.95, 1.0), scale=(0.015, 0.05)), torch.zeros(3))
+
+
+def measure_constants(command: str) -> dict:
+    """Per scene and variant: PSNR (dB, peak 1), largest difference and share of pixels that differ by
+    more than 1/255 in any channel, of the RGB image against today's constants."""
+    r = CONSTANTS_RESOLUTION
+    view, K = head_camera(r)
+    rows = []
+    with torch.no_grad():
+        for name, scene, background in constant_scenes():
+            args = (*(scene[k] for k in ("means", "quats", "scales", "opacities", "colors")), view, K, r, r)
+            today = rasterizer.rasterize(*args, background=background)[0]
+            for variant, (alpha_max, rule) in CONSTANT_VARIANTS.items():
+                with rasterizer_constants(alpha_max, rule):
+                    other = rasterizer.rasterize(*args, background=background)[0]
+                diff = (other - today).abs()
+                rows.append({"scene": name, "variant": variant, "psnr_db": psnr_db(float(diff.square().mean())),
+                             "max_abs": float(diff.max()),
+                             "pixels_over_1_255": float((diff.amax(-1) > 1 / 255).float().mean())})
+    return {"command": command, "machine": machine_info(), "resolution": r, "rows": rows,
+            "date_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+
+
+def constants_markdown(results: dict) -> str:
+    lines = ["# Rasterizer constants: former against gsplat's", "",
+             f"Measured {results['date_utc']} on the CPU (torch {results['machine']['torch']}, git "
+             f"{results['machine']['git_revision']}); nothing here ran on a GPU or through gsplat: today's "
+             "constants are gsplat's (>= 1.5, \"classic\"), rendered by the pure-PyTorch rasterizer.", "",
+             *reproduce(results["command"]), "",
+             f"RGB at {results['resolution']}x{results['resolution']} px from 2.7 units (yaw 20, pitch 10 degrees, "
+             "EG3D's 18.837 degree FOV), each variant against today's constants (alpha clamp 0.999, tile box "
+             "min(3.33, sqrt(2 ln(255 o))) sigma per axis, which holds the whole alpha >= 1/255 ellipse). "
+             "PSNR with peak 1; 'over 1/255' is the share of pixels that differ by more than 1/255 in a channel.",
+             "", "| scene | variant | PSNR dB | max abs diff | pixels over 1/255 |", "|---|---|---:|---:|---:|"]
+    for row in results["rows"]:
+        psnr = "identical" if row["psnr_db"] is None else f"{row['psnr_db']:.1f}"
+        lines.append(f"| {row['scene']} | {row['variant']} | {psnr} | {row['max_abs']:.4f} "
+                     f"| {100 * row['pixels_over_1_255']:.2f} % |")
+    return "\n".join(lines + [""])
+
+
+def constants_main(report_only: bool, argv) -> None:
+    stem = REPORTS / CONSTANTS_NAME
+    results = load_or_measure(stem.with_suffix(".json"), report_only,
+                              lambda: measure_constants(command_line(Path(__file__), argv)))
+    stem.with_suffix(".md").write_text(constants_markdown(results))
+    print(f"wrote {stem}.md")
+
+
 def main(argv=None) -> None:
     parser = benchmark_parser(__doc__, quick_help="a smoke run, under 2 minutes",
                               report_only_help="rewrite the markdown and plot from the JSON")
+    parser.add_argument("--constants", action="store_true",
+                        help="PSNR of the former constants against gsplat's (rasterizer_constants.md)")
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
         print(json.dumps(child(json.loads(args.child))))
+        return
+    if args.constants:
+        constants_main(args.report_only, argv)
         return
     mode = "quick" if args.quick else "full"
     results = load_or_measure(report_stem(mode).with_suffix(".json"), args.report_only,

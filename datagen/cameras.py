@@ -127,8 +127,9 @@ def conditioning_vector(cam2world, K_norm) -> np.ndarray:
 
 
 def _is_tensor(x) -> bool:
-    """A torch tensor, without importing torch for numpy callers (command-line help stays fast)."""
-    return type(x).__module__.split(".")[0] == "torch"
+    """A torch tensor (subclasses too), without importing torch for numpy callers (command-line
+    help stays fast)."""
+    return any(c.__module__.split(".")[0] == "torch" for c in type(x).__mro__)
 
 
 def ray_range(radius):

@@ -1,6 +1,7 @@
 """The ``datagen`` command line: sample, verify, preview, info."""
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 
@@ -26,6 +27,16 @@ def parse_background(text: str, allow_own: bool):
     return rgb
 
 
+def parse_workers(text: str):
+    """'auto' or a whole number (checked by the pipeline)."""
+    if text == "auto":
+        return text
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be auto or a number, not {text!r}") from None
+
+
 def build_parser() -> OneLineParser:
     p = OneLineParser(prog="datagen", description="Build multiview head datasets from head generators.")
     sub = p.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
@@ -40,8 +51,15 @@ def build_parser() -> OneLineParser:
     s.add_argument("--seed", type=int, default=0, help="dataset seed; every draw derives from (seed, subject)")
     s.add_argument("--shard-size", type=int, default=8, help="subjects per shard")
     s.add_argument("--out", required=True, help="output dataset folder")
-    s.add_argument("--workers", type=int, default=1, help="parallel worker processes on this machine")
+    s.add_argument("--workers", type=parse_workers, default=1, metavar="auto|N",
+                   help="worker processes on this machine: N, or auto = one per GPU on CUDA (one with --device "
+                        "cuda:N), else one per CPU core up to this job's shard count. On CUDA worker k renders on "
+                        "cuda:(k mod the GPU count), so more workers than GPUs share them; --device cuda:N puts all "
+                        "on GPU N. With --backend ray, each task gets the CPU cores divided by N")
     s.add_argument("--backend", default="local", choices=("local", "ray"), help="run shard tasks here or on Ray")
+    s.add_argument("--gpus-per-task", type=float, default=None, metavar="G",
+                   help="--backend ray with CUDA: the share of one GPU each shard task asks Ray for, in (0, 1]; "
+                        "0.5 runs two tasks per GPU (default 1). Each task renders on the GPU Ray gives it")
     s.add_argument("--ray-address", help="address of an existing Ray cluster (default: RAY_ADDRESS or a local one)")
     s.add_argument("--shard-index", type=int, default=0, help="this job's part K of --num-shards (array jobs)")
     s.add_argument("--num-shards", type=int, default=1, help="split the shards over N jobs; job K writes shards s with s %% N == K")
@@ -58,7 +76,9 @@ def build_parser() -> OneLineParser:
     s.add_argument("--truncation-cutoff", type=int, default=None, help="GANs: truncate the first N ws (default 14)")
     s.add_argument("--save-planes", type=int, default=0, metavar="RES",
                    help="GANs: also store the plane features in fp16 at RES x RES (for distillation)")
-    s.add_argument("--device", default=None, help="GANs: cpu, cuda, cuda:N or auto (default: cuda when available)")
+    s.add_argument("--device", default=None,
+                   help="GANs: cpu, cuda (every GPU, see --workers), cuda:N (that GPU only; local backend) or auto "
+                        "(default: cuda when available). The procedural generator runs on the CPU")
     s.add_argument("--precision", default=None, choices=("auto", "fp32", "fp16"),
                    help="GANs: 'auto' (default) runs the originals' fp16 blocks (the super-resolution of the released "
                         "checkpoints) in fp16 on CUDA and everything in fp32 on CPU; 'fp32' never uses fp16")
@@ -140,8 +160,8 @@ def _sample(args) -> int:
                    protocol=args.protocol, subjects=args.subjects, resolution=args.resolution, views=args.views,
                    seed=args.seed, shard_size=args.shard_size, software=software_info())
     summary = run_sample(spec, workers=args.workers, backend=args.backend, ray_address=args.ray_address,
-                         shard_index=args.shard_index, num_shards=args.num_shards, resume=args.resume,
-                         progress=not args.quiet)
+                         gpus_per_task=args.gpus_per_task, shard_index=args.shard_index, num_shards=args.num_shards,
+                         resume=args.resume, progress=not args.quiet)
     rate = summary["images"] / summary["seconds"] if summary["seconds"] > 0 else 0.0
     print(f"wrote {summary['shards_written']} shard(s), skipped {summary['shards_skipped']} complete; "
           f"{summary['images']} images in {summary['seconds']:.1f} s ({rate:.1f} img/s) -> {args.out}")

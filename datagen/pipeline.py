@@ -11,7 +11,7 @@ import os
 import platform
 import subprocess
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -19,10 +19,12 @@ import torch
 
 from . import __version__
 from .cameras import PROTOCOLS, protocol_pivot, sample_views
+from .device import ray_task_device, worker_devices
 from .errors import UserError
 from .files import LockBusy, atomic_write, byte_lock
-from .generators import make_generator
+from .generators import GANS, make_generator
 from .generators.base import STREAM_CAMERAS, subject_rng
+from .generators.gan import NOT_RECORDED
 from .shards import (FORMAT, INDEX_NAME, ShardWriter, dumps, encode_subject, is_complete,
                      read_index, remove_partial, shard_name, subject_id, tar_path, view_name)
 
@@ -55,8 +57,12 @@ class JobSpec:
         return range(shard * self.shard_size, min(self.subjects, (shard + 1) * self.shard_size))
 
     def settings(self) -> dict:
+        """What the index records: the job less its output folder and the generator options that
+        only place or split the work (device, memory budget), so a dataset is the same, and resumes,
+        wherever it runs."""
         s = asdict(self)
         s.pop("out")
+        s["generator_options"] = {k: v for k, v in s["generator_options"].items() if k not in NOT_RECORDED}
         return s
 
 
@@ -183,39 +189,68 @@ def _write_shard(spec: JobSpec, shard: int, progress) -> dict:
 # ----------------------------------------------------------------------------------------------
 # Backends
 
-def _init_worker(threads: int, queue) -> None:
+def requested_device(spec: JobSpec) -> str:
+    """The --device a job asks for: the GANs' option (default 'auto'); the procedural generator is CPU only."""
+    return spec.generator_options.get("device", "auto") if spec.gan in GANS else "cpu"
+
+
+def on_device(spec: JobSpec, device: str) -> JobSpec:
+    """``spec`` rendering on ``device``. A GAN's device is not recorded with its data, and the index
+    is written from the job's own spec, so the bytes do not depend on where a shard is rendered."""
+    if spec.gan not in GANS:
+        return spec
+    return replace(spec, generator_options={**spec.generator_options, "device": device})
+
+
+def _enter_worker(threads: int, device: str) -> None:
+    """Set up a worker process (or a Ray task) to render on ``device`` with ``threads`` CPU threads.
+    A CUDA worker makes its GPU the current one, so nothing it runs lands on another."""
     torch.set_num_threads(threads)
-    global _QUEUE
-    _QUEUE = queue
+    if device.startswith("cuda"):
+        torch.cuda.set_device(torch.device(device))
 
 
-_QUEUE = None
+_WORKER: tuple | None = None  # in a local worker process: (progress queue, its device)
+
+
+def _init_worker(threads: int, progress, devices) -> None:
+    """Pool initializer: each worker process takes the next device from the ``devices`` queue."""
+    global _WORKER
+    device = devices.get()
+    _enter_worker(threads, device)
+    _WORKER = (progress, device)
 
 
 def _pool_task(spec: JobSpec, shard: int) -> dict:
-    return write_shard(spec, shard, progress=_QUEUE.put)
+    progress, device = _WORKER
+    return write_shard(on_device(spec, device), shard, progress=progress.put)
 
 
-def _run_local(spec: JobSpec, shards: list[int], workers: int, bar) -> None:
-    if workers == 1 or len(shards) <= 1:  # (none left: a resumed dataset that was complete)
+def _run_local(spec: JobSpec, shards: list[int], devices: list[str], bar) -> None:
+    """Render ``shards`` with one worker process per element of ``devices`` (at most one per shard),
+    in this process when there is one."""
+    if len(devices) == 1 or len(shards) <= 1:  # (none left: a resumed dataset that was complete)
         for s in shards:
-            write_shard(spec, s, progress=bar.update)
+            write_shard(on_device(spec, devices[0]), s, progress=bar.update)
         return
     import multiprocessing as mp
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
     ctx = mp.get_context("spawn")
-    queue = ctx.Queue()
-    threads = max(1, (os.cpu_count() or 1) // workers)
-    with ProcessPoolExecutor(max_workers=min(workers, len(shards)), mp_context=ctx,
-                             initializer=_init_worker, initargs=(threads, queue)) as pool:
+    progress, handout = ctx.Queue(), ctx.Queue()
+    threads = max(1, (os.cpu_count() or 1) // len(devices))
+    devices = devices[:len(shards)]
+    for device in devices:
+        handout.put(device)
+    with ProcessPoolExecutor(max_workers=len(devices), mp_context=ctx,
+                             initializer=_init_worker, initargs=(threads, progress, handout)) as pool:
         pending = {pool.submit(_pool_task, spec, s) for s in shards}
         while pending:
             done, pending = wait(pending, timeout=0.2, return_when=FIRST_COMPLETED)
-            _drain(queue, bar)
+            _drain(progress, bar)
             for fut in done:
                 fut.result()  # re-raise a worker's error here
-        _drain(queue, bar)
+        _drain(progress, bar)
 
 
 def _drain(queue, bar) -> None:
@@ -228,16 +263,41 @@ def _drain(queue, bar) -> None:
             return
 
 
-def _ray_task(spec: JobSpec, shard: int, threads: int) -> dict:
-    # Ray workers are reused across tasks and jobs: set the thread count for every task.
-    torch.set_num_threads(threads)
-    return write_shard(spec, shard)
+def ray_task_options(nodes: list[dict], threads: int, gpus: float | None) -> dict:
+    """What one shard task asks Ray for: ``threads`` CPUs and, when it renders on CUDA, ``gpus`` of
+    one GPU (None: a CPU task). ``nodes`` is ``ray.nodes()``: the CPUs are capped at the largest
+    alive node that could run the task, since a task asking for more than any node has would wait
+    forever; for the same reason a GPU task on a cluster without GPUs is refused."""
+    alive = [n.get("Resources", {}) for n in nodes if n.get("Alive")]
+    if gpus:
+        alive = [r for r in alive if r.get("GPU", 0) > 0]
+        if not alive:
+            raise UserError("the Ray cluster has no GPU; render on the CPU with --device cpu")
+    biggest = max((r.get("CPU", 0) for r in alive), default=0)
+    options = {"num_cpus": max(1, min(threads, int(biggest) or threads))}
+    if gpus:
+        options["num_gpus"] = gpus
+    return options
 
 
-def _run_ray(spec: JobSpec, shards: list[int], address: str | None, threads: int, bar) -> None:
+def _ray_task(spec: JobSpec, shard: int, threads: int, cuda: bool) -> dict:
+    # Ray workers are reused across tasks and jobs: set the threads for every task. A GPU task runs
+    # in a fresh worker (Ray's default for tasks that ask for GPUs) that sees the GPU it was given.
+    # A CPU task stays on the CPU even on a node with GPUs.
+    device = "cpu"
+    if cuda:
+        import ray
+
+        device = ray_task_device(ray.get_gpu_ids(), os.environ.get("CUDA_VISIBLE_DEVICES"))
+    _enter_worker(threads, device)
+    return write_shard(on_device(spec, device), shard)
+
+
+def _run_ray(spec: JobSpec, shards: list[int], address: str | None, threads: int, gpus: float | None,
+             bar) -> None:
     """Run the shard tasks on Ray: the cluster this process is already connected to, else the one
     at ``address`` / RAY_ADDRESS, else a private local instance. Only a connection or instance made
-    here is closed here."""
+    here is closed here. ``gpus``: each task's share of a GPU when rendering on CUDA, else None."""
     try:
         import ray
     except ImportError:
@@ -276,11 +336,9 @@ def _run_ray(spec: JobSpec, shards: list[int], address: str | None, threads: int
                 os.environ.pop("RAY_USAGE_STATS_ENABLED", None)
     pending: dict = {}
     try:
-        # A task asking for more CPUs than any node has would wait forever.
-        biggest = max((n.get("Resources", {}).get("CPU", 0) for n in ray.nodes() if n.get("Alive")), default=0)
-        threads = max(1, min(threads, int(biggest) or threads))
-        task = ray.remote(num_cpus=threads)(_ray_task)
-        pending = {task.remote(spec, s, threads): s for s in shards}
+        options = ray_task_options(ray.nodes(), threads, gpus)
+        task = ray.remote(**options)(_ray_task)
+        pending = {task.remote(spec, s, options["num_cpus"], bool(gpus)): s for s in shards}
         while pending:
             done, _ = ray.wait(list(pending), num_returns=1)
             shard = pending.pop(done[0])
@@ -357,23 +415,31 @@ def _publish_index(out: Path, index: dict) -> None:
     atomic_write(out / INDEX_NAME, dumps(index))
 
 
-def run_sample(spec: JobSpec, *, workers: int = 1, backend: str = "local", ray_address: str | None = None,
-               shard_index: int = 0, num_shards: int = 1, resume: bool = False, progress: bool = True) -> dict:
+def run_sample(spec: JobSpec, *, workers: int | str = 1, backend: str = "local", ray_address: str | None = None,
+               gpus_per_task: float | None = None, shard_index: int = 0, num_shards: int = 1, resume: bool = False,
+               progress: bool = True) -> dict:
     """Write this job's part of the dataset (shards s with s % num_shards == shard_index).
 
+    ``workers``: a count or 'auto' (see :func:`datagen.device.worker_devices`; on the CPU, 'auto' is
+    one per CPU core up to this job's shard count); the local backend runs one process per worker,
+    Ray gives each task the CPU cores divided by the workers. ``gpus_per_task``: Ray only, the share
+    of a GPU each task asks for when rendering on CUDA (default 1).
     Returns a summary: shards written and skipped, images, seconds.
     """
     validate(spec)
     if num_shards < 1 or not 0 <= shard_index < num_shards:
         raise UserError("--shard-index must satisfy 0 <= shard-index < num-shards")
-    if workers < 1:
-        raise UserError("--workers must be at least 1")
+    if workers != "auto" and not (isinstance(workers, int) and workers >= 1):
+        raise UserError("--workers must be auto or at least 1")
     if backend not in ("local", "ray"):
         raise UserError(f"unknown backend {backend!r}; choose local or ray")
+    mine = [s for s in range(spec.num_shard_files) if s % num_shards == shard_index]
+    requested = requested_device(spec)
+    devices = worker_devices(requested, workers, max(1, min(os.cpu_count() or 1, len(mine))))
+    gpus = _ray_gpus(backend, requested, devices[0], gpus_per_task)
     generator = make_generator(spec.gan, spec.checkpoint, spec.generator_options)
     index = make_index(spec, generator.describe())
     prepare_output(spec, index)
-    mine = [s for s in range(spec.num_shard_files) if s % num_shards == shard_index]
     done = [s for s in mine if is_complete(spec.out, s)]
     if done and not resume:
         raise UserError(f"{spec.out} already has {len(done)} complete shard(s) of this job; "
@@ -384,9 +450,9 @@ def run_sample(spec: JobSpec, *, workers: int = 1, backend: str = "local", ray_a
     start = time.perf_counter()
     try:
         if backend == "ray":
-            _run_ray(spec, todo, ray_address, max(1, (os.cpu_count() or 1) // max(1, workers)), bar)
+            _run_ray(spec, todo, ray_address, max(1, (os.cpu_count() or 1) // len(devices)), gpus, bar)
         else:
-            _run_local(spec, todo, workers, bar)
+            _run_local(spec, todo, devices, bar)
     except OSError as e:
         if e.errno == errno.ENOSPC:
             raise UserError(f"disk full while writing {e.filename or spec.out}; "
@@ -396,3 +462,22 @@ def run_sample(spec: JobSpec, *, workers: int = 1, backend: str = "local", ray_a
         bar.close()
     return {"shards_written": len(todo), "shards_skipped": len(done), "images": images,
             "seconds": time.perf_counter() - start}
+
+
+def _ray_gpus(backend: str, requested: str, device: str, gpus_per_task: float | None) -> float | None:
+    """Each Ray task's share of a GPU (None: CPU tasks), or a UserError for a request that cannot be met.
+    ``requested``: the --device given; ``device``: what it resolved to here (the first worker's)."""
+    cuda = device.startswith("cuda")
+    if gpus_per_task is not None:
+        if backend != "ray":
+            raise UserError("--gpus-per-task: only for --backend ray")
+        if not 0 < gpus_per_task <= 1:
+            raise UserError("--gpus-per-task must be above 0 and at most 1 (a shard task renders on one GPU)")
+        if not cuda:
+            raise UserError("--gpus-per-task: the device is the CPU; Ray tasks ask for GPUs only to render on CUDA")
+    if backend != "ray" or not cuda:
+        return None
+    if ":" in requested:
+        raise UserError(f"--device {requested} pins a GPU of this machine; with --backend ray use cuda or auto "
+                        "(each task renders on the GPU Ray gives it)")
+    return 1 if gpus_per_task is None else gpus_per_task

@@ -1,9 +1,12 @@
 """Run checkpoints: writing them atomically, reading them back, the trained model they hold.
 
 A checkpoint (``<run>/checkpoint.pt``, format ``panolam-checkpoint/1``) holds the model, optimizer
-and scheduler states, the RNG state, the step, both configs, the recent per-step log and what the
-run trains on (:func:`panolam.train.training_data`). It is read with ``torch.load(weights_only=True)``:
-nothing in it executes. Inference and evaluation need only this module, not the training code.
+and scheduler states, the CPU RNG state, the step, both configs, the recent per-step log and what
+the run trains on (:func:`panolam.train.training_data`). Its tensors are written from the CPU and
+read onto the CPU whatever device trained or resumes the run, so a run moves between CPU and GPU
+machines; loading the states into a model and optimizer on a device moves them there. It is read
+with ``torch.load(weights_only=True)``: nothing in it executes. Inference and evaluation need only
+this module, not the training code.
 """
 from __future__ import annotations
 
@@ -54,6 +57,21 @@ def _torch_save(state: dict, f) -> None:
         raise
 
 
+def _on_host(value):
+    """``value`` with every tensor in it (through dicts, lists and tuples) copied to the CPU; a state
+    dict keeps its type and the ``_metadata`` that ``load_state_dict`` reads."""
+    if isinstance(value, torch.Tensor):
+        return value.detach().cpu()
+    if isinstance(value, dict):
+        copy = type(value)((k, _on_host(v)) for k, v in value.items())
+        if hasattr(value, "_metadata"):
+            copy._metadata = value._metadata
+        return copy
+    if isinstance(value, (list, tuple)):
+        return type(value)(_on_host(v) for v in value)
+    return value
+
+
 def save_checkpoint(out: Path, model, optimizer, scheduler, step: int, model_cfg: ModelConfig, cfg: TrainConfig,
                     history: list, data: Optional[dict] = None) -> Path:
     """Write ``out/checkpoint.pt`` atomically (temporary name, then rename; the temporary is removed
@@ -62,15 +80,16 @@ def save_checkpoint(out: Path, model, optimizer, scheduler, step: int, model_cfg
     ``data``: what the run trains on, checked on resume and by evaluation.
     """
     core = model.module if hasattr(model, "module") else model
-    state = {"format": FORMAT, "step": step, "model": core.state_dict(),
-             "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
+    state = {"format": FORMAT, "step": step, "model": _on_host(core.state_dict()),
+             "optimizer": _on_host(optimizer.state_dict()), "scheduler": scheduler.state_dict(),
              "rng": torch.get_rng_state(), "model_config": model_cfg.to_dict(), "train_config": cfg.to_dict(),
              "history": history[-HISTORY_KEPT:], "data": data or {}}
     return atomic_write(Path(out) / CHECKPOINT, lambda f: _torch_save(state, f))
 
 
 def read_checkpoint(path) -> dict:
-    """A checkpoint file or a run directory holding one; one-line errors."""
+    """A checkpoint file or a run directory holding one, its tensors on the CPU (also those of a file
+    written from a GPU); one-line errors."""
     path = Path(path)
     if path.is_dir():
         path = path / CHECKPOINT

@@ -54,7 +54,8 @@ def _train_options(p):
                    help="continue the run in RUN (default: --out) exactly where it stopped")
     add_options(p, TrainConfig)
     _model_path_options(p, where_now=False)
-    p.add_argument("--nproc", type=at_least(1), default=1, help="data-parallel processes on this machine")
+    p.add_argument("--nproc", type=at_least(1), default=1,
+                   help="data-parallel processes on this machine (with --device cuda, process i on GPU i)")
     p.add_argument("--device", default="cpu", help=DEVICE_HELP)
     p.add_argument("--no-progress", action="store_true")
 

@@ -125,6 +125,9 @@ class TrainConfig:
     lpips_backbone: Optional[str] = setting(None, "torchvision-format AlexNet/VGG16 weights for LPIPS")
     lpips_lin: Optional[str] = setting(None, "LPIPS linear-layer weights (alex.pth / vgg.pth)")
     lpips_net: str = setting("alex", "LPIPS backbone", choices=("alex", "vgg"))
+    rasterizer: str = setting("auto", "Gaussian rasterizer: gsplat's CUDA kernels for CUDA tensors when they load, "
+                                      "else the pure-PyTorch one (auto); or either one",
+                              choices=("auto", "torch", "gsplat"))
     seed: int = setting(0, "data order and initialisation", parse=at_least(0), fixed=True)
     num_workers: int = setting(0, "data loader processes; 0 loads in this process", parse=at_least(0), flag="--workers")
     log_every: int = setting(10, "steps between TensorBoard scalars and console lines", parse=at_least(1))

@@ -19,6 +19,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from datagen.device import constant
 from datagen.errors import UserError
 
 # transformers is imported where DINOv2 is loaded: importing it takes seconds and the small encoder does not need it.
@@ -64,8 +65,8 @@ def prepare_images(images: torch.Tensor, size: int) -> torch.Tensor:
         raise ValueError(f"images must be (B, 3, H, W), got {tuple(images.shape)}")
     if images.shape[-2:] != (size, size):
         images = F.interpolate(images, size=(size, size), mode="bilinear", antialias=True, align_corners=False)
-    mean = images.new_tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
-    std = images.new_tensor(IMAGENET_STD).view(1, 3, 1, 1)
+    mean = constant(IMAGENET_MEAN, images.device).to(images.dtype).view(1, 3, 1, 1)
+    std = constant(IMAGENET_STD, images.device).to(images.dtype).view(1, 3, 1, 1)
     return (images - mean) / std
 
 

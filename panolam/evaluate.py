@@ -20,14 +20,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from datagen.device import constant
 from datagen.files import atomic_write
 from datagen.shards import read_fields, tar_path, to_uint8
 
 from .data import BACKGROUND, accepted_subjects, check_subject_shards, decode_views, view_yaws
+from .gaussians import Gaussians
 from .metrics import psnr, ssim
 from .model import PanoLAM
 from .rasterizer import render_views
-from .gaussians import Gaussians
 
 EVAL_VIEWS = {"front": 0.0, "left": 90.0, "back": 180.0, "right": 270.0}
 YAW_TOLERANCE = 10.0
@@ -82,17 +83,19 @@ def evaluate(model: PanoLAM, data, manifest: dict, split: str = "test", resoluti
         res = images.shape[-1]
         t0 = time.perf_counter()
         rgb, _, _ = render_views(g, meta_views.cam2world[None].to(device), meta_views.K[None].to(device),
-                                 res, background=images.new_tensor(BACKGROUND))
+                                 res, background=constant(BACKGROUND, device))
         _sync(device)
         render_times.append((time.perf_counter() - t0) / len(idx))
         pred = rgb[0].permute(0, 3, 1, 2).clamp(0, 1)
-        p, s = psnr(pred, images), ssim(pred, images)
-        lp = lpips(pred, images).flatten() if lpips is not None else None
+        scores = [psnr(pred, images), ssim(pred, images)]
+        scores += [lpips(pred, images).flatten()] if lpips is not None else []
+        p, s, *lp = torch.stack(scores).cpu().tolist()  # one read per subject
+        if faces is not None:  # (2, views, H, W, 3): renders and targets, copied to the host together
+            pictures = to_uint8(torch.stack([pred, images]).permute(0, 1, 3, 4, 2).cpu().numpy())
         for j, name in enumerate(picked):
-            row = {"subject": key, "view": name, "psnr": float(p[j]), "ssim": float(s[j]),
-                   "lpips": None if lp is None else float(lp[j])}
+            row = {"subject": key, "view": name, "psnr": p[j], "ssim": s[j], "lpips": lp[0][j] if lp else None}
             if faces is not None:
-                a, b = (to_uint8(t.permute(1, 2, 0).cpu().numpy()) for t in (pred[j], images[j]))
+                a, b = pictures[:, j]
                 row["csim"] = faces.csim(a, b, box_from_b=True) if name == "front" else None
                 if name == "front":
                     front_targets.append(b)

@@ -21,6 +21,7 @@ import torch
 from PIL import Image
 
 from datagen.cameras import FOV_MEAN, HEAD360_PIVOT, RADIUS_MEAN, ViewSet, named_views
+from datagen.device import constant
 from datagen.errors import UserError
 from datagen.files import atomic_write
 from datagen.shards import to_uint8
@@ -46,7 +47,7 @@ def render_set(g: Gaussians, views: ViewSet, resolution: int) -> torch.Tensor:
     g1 = Gaussians(*(t[None].float() for t in (g.means, g.quats, g.scales, g.opacities, g.colors)))
     with torch.no_grad():
         rgb, _, _ = render_views(g1, c2w.to(g.means.device), K.to(g.means.device), resolution,
-                                 background=g.means.new_tensor(BACKGROUND))
+                                 background=constant(BACKGROUND, g.means.device))
     return rgb[0].permute(0, 3, 1, 2).clamp(0, 1)
 
 
@@ -93,8 +94,8 @@ def _encoded(image: Image.Image, **options) -> bytes:
 
 
 def frames_uint8(images: torch.Tensor) -> list[np.ndarray]:
-    """(N, 3, H, W) in [0, 1] -> N uint8 (H, W, 3) frames."""
-    return [to_uint8(x.permute(1, 2, 0).cpu().numpy()) for x in images]
+    """(N, 3, H, W) in [0, 1] -> N uint8 (H, W, 3) frames (one copy to the host for all of them)."""
+    return list(to_uint8(images.permute(0, 2, 3, 1).cpu().numpy()))
 
 
 TURNTABLE_FORMATS = (".mp4", ".gif")

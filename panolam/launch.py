@@ -3,8 +3,8 @@ processes ``torchrun`` started (``torchrun --nproc-per-node N -m panolam train .
 ``WORLD_SIZE``, ``RANK`` and ``LOCAL_RANK``).
 
 Processes average gradients with torch.distributed: gloo on CPU (each process gets its share of
-the cores), NCCL on CUDA (process i on GPU i). A user mistake in any process is one line and exit
-status 2, as in a single process.
+the cores), NCCL on CUDA (the process of local rank i on GPU i: ``--device cuda``, no index). A user
+mistake in any process is one line and exit status 2, as in a single process.
 """
 from __future__ import annotations
 
@@ -46,6 +46,35 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def process_device(requested: str, local_rank: int, gpus: int) -> str:
+    """The device of the process of ``local_rank`` (its index on this machine) in a job on
+    ``requested`` ('cpu', 'cuda' or 'cuda:N'), on a machine with ``gpus`` CUDA devices: GPU
+    ``local_rank`` for CUDA, else the CPU. A UserError when that GPU is not there."""
+    kind, _, index = requested.partition(":")
+    if kind != "cuda":
+        return "cpu"
+    if index:
+        raise UserError(f"--device {requested} names one GPU, but each of several processes takes the GPU of its "
+                        f"local rank; give --device cuda")
+    if local_rank >= gpus:
+        raise UserError(f"process {local_rank} on this machine needs GPU {local_rank}, and it has {gpus}: start at "
+                        f"most {gpus} processes per machine")
+    return f"cuda:{local_rank}"
+
+
+def _join(job: Job, local_rank: int, **init) -> str:
+    """Bind this process to its device and join the process group (NCCL on CUDA, gloo on the CPU);
+    returns the device. ``init``: rank and world size when no environment variables give them."""
+    import torch
+    import torch.distributed as dist
+    device = process_device(job.device, local_rank, torch.cuda.device_count())
+    cuda = device.startswith("cuda")
+    if cuda:
+        torch.cuda.set_device(device)  # first: NCCL's communicator binds to the current GPU
+    dist.init_process_group("nccl" if cuda else "gloo", device_id=torch.device(device) if cuda else None, **init)
+    return device
+
+
 def launched_by_torchrun() -> bool:
     return int(os.environ.get("WORLD_SIZE", "1")) > 1
 
@@ -57,9 +86,11 @@ def run(job: Job, nproc: int = 1) -> Optional[dict]:
         return _as_torchrun_process(job)
     if nproc == 1:
         return job.run(job.device)
+    import torch
     import torch.multiprocessing as mp
     from .train import check_start
     # Each process checks again as it starts; checking here first makes a mistake one line, not one per process.
+    process_device(job.device, nproc - 1, torch.cuda.device_count())
     check_start(job.data, job.manifest, job.model, job.training, job.out, job.resume)
     try:
         mp.spawn(_child, args=(nproc, free_port(), job), nprocs=nproc)
@@ -72,13 +103,8 @@ def run(job: Job, nproc: int = 1) -> Optional[dict]:
 
 def _as_torchrun_process(job: Job) -> Optional[dict]:
     """This process's share of a torchrun job; the log entry on rank 0 only (one report per run)."""
-    import torch
     import torch.distributed as dist
-    device = job.device
-    if device.startswith("cuda"):
-        device = f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}"
-        torch.cuda.set_device(device)
-    dist.init_process_group("nccl" if device.startswith("cuda") else "gloo")
+    device = _join(job, int(os.environ.get("LOCAL_RANK", "0")))
     try:
         entry = job.run(device)
         return entry if dist.get_rank() == 0 else None
@@ -92,12 +118,9 @@ def _child(rank: int, world: int, port: int, job: Job) -> None:
     import torch.distributed as dist
     os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE=str(world))
     torch.set_num_threads(max(1, (os.cpu_count() or 1) // world))
-    cuda = job.device.startswith("cuda")
-    if cuda:
-        torch.cuda.set_device(rank)
-    dist.init_process_group("nccl" if cuda else "gloo", rank=rank, world_size=world)
+    device = _join(job, rank, rank=rank, world_size=world)
     try:
-        job.run(f"cuda:{rank}" if cuda else "cpu")
+        job.run(device)
     except (UserError, OSError) as e:
         line = str(e) if isinstance(e, UserError) else os_error_line(e)
         if line is None:

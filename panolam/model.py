@@ -37,6 +37,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from datagen.cameras import ray_range, rays
+from datagen.device import constant
 from datagen.errors import UserError
 from datagen.gans.triplane import OSGDecoder, crop_outside, sample_planes
 from datagen.render import RenderSettings, render_rays
@@ -146,7 +147,7 @@ class SphericalTriplane(nn.Module):
 
 def virtual_ray_samples(points: torch.Tensor, radius: float, half_length: float, k: int) -> torch.Tensor:
     """Samples (B, 4, M, K, 3) on the rays from the 4 virtual cameras through each point (B, M, 3)."""
-    origins = points.new_tensor(VIRTUAL_CAMERAS) * radius
+    origins = constant(VIRTUAL_CAMERAS, points.device).to(points.dtype) * radius
     dirs = F.normalize(points[:, None] - origins[None, :, None], dim=-1, eps=1e-8)
     t = torch.linspace(-half_length, half_length, k, device=points.device, dtype=points.dtype)
     return points[:, None, :, None] + dirs[..., None, :] * t[:, None]

@@ -1,9 +1,9 @@
-"""Differentiable 3D Gaussian splatting in pure PyTorch, fast enough to train on a CPU.
+"""Differentiable 3D Gaussian splatting in pure PyTorch: fast enough to train on a CPU, and the
+rasterizer on GPUs where gsplat (CUDA kernels; the optional extra ``.[cuda]``) is not installed.
 
-Written here because the libraries (gsplat, Inria's diff-gaussian-rasterization) rasterize on CUDA
-only; on a GPU, ``backend="auto"`` hands the work to gsplat.
-
-The API follows ``gsplat.rasterization``; every function in this module shares these conventions.
+The API follows ``gsplat.rasterization`` and so do the constants (gsplat >= 1.5, "classic" mode):
+a model trained with one backend renders the same with the other. Every function in this module
+shares these conventions.
 
 Inputs
     means (N, 3) world units; quats (N, 4) wxyz (normalized here; a zero quaternion is the
@@ -23,12 +23,16 @@ Projection (EWA splatting)
     computed in float64 so that huge or tiny scales stay finite, with a cancellation-free
     determinant (see project), positive for every finite Gaussian.
 Tiles
-    radius r = ceil(3 sqrt(lambda_max(cov2d))) px. A Gaussian takes part only in the tiles
-    (``tile_size`` px squares) that its box ``[u - r, u + r] x [v - r, v + r]`` touches, as in the
-    CUDA rasterizers: the output depends on ``tile_size`` only through this 3-sigma cut.
+    A Gaussian takes part only in the tiles (``tile_size`` px squares) that its box
+    ``[u - rx, u + rx] x [v - ry, v + ry]`` touches, with ``rx = ceil(e sqrt(cov2d_xx))``,
+    ``ry = ceil(e sqrt(cov2d_yy))`` px and ``e = min(3.33, sqrt(2 ln(255 o)))`` (gsplat's
+    opacity-aware box): the bounding box of the ellipse where ``o exp(-0.5 d^T cov2d^-1 d)`` reaches
+    1/255, capped at 3.33 standard deviations per axis. The cap binds only above opacity 1.0036, so
+    for opacities in [0, 1] every pixel where a Gaussian passes the alpha threshold lies in its
+    tiles, and the output does not depend on ``tile_size`` (up to rounding on the ellipse itself).
 Compositing, front to back by the camera z of each mean
-    ``alpha_i = min(0.99, o_i exp(-0.5 d^T cov2d^-1 d))``; alpha < 1/255 is skipped; a pixel stops
-    before the first Gaussian that would take its transmittance below 1e-4.
+    ``alpha_i = min(0.999, o_i exp(-0.5 d^T cov2d^-1 d))``; alpha < 1/255 is skipped; a pixel stops
+    before the first Gaussian that would take its transmittance below 1e-4 (gsplat: at or below).
     ``w_i = alpha_i T_i`` with ``T_i = prod_{j<i} (1 - alpha_j)``.
 Outputs
     rgb (H, W, D) = sum w_i c_i + (1 - alpha) background (background defaults to 0);
@@ -41,21 +45,31 @@ the 4x4 px blocks of its tiles that its alpha >= 1/255 ellipse reaches (exact: d
 only be skipped) and sorts the pairs by (block, depth) with one stable sort. Compositing is a custom
 autograd Function that walks the blocks' depth-sorted lists in chunks of k Gaussians, many blocks at
 once, so each step is a dozen tensor ops on a (blocks, pixels, k) array of bounded size (a
-preallocated workspace); blocks whose pixels have all stopped leave the walk. Transmittance is a
-cumulative sum of log(1 - alpha). The backward pass replays the walk back to front, recomputes each
-step and applies the closed-form 3DGS gradients
+preallocated workspace). Transmittance is a cumulative sum of log(1 - alpha). The backward pass
+replays the walk back to front, recomputes each step and applies the closed-form 3DGS gradients
 ``dL/dalpha_i = T_i (c_i . g) - (sum_{j>i} w_j c_j . g) / (1 - alpha_i)`` (g = dL/d pixel), the
 suffix sums carried from the steps behind; pixel sums of dL/dexponent times [1, x, y, x^2, xy, y^2]
 give the gradients of the 2D mean, conic and opacity. No N x H x W tensor is ever built.
 :mod:`panolam.rasterizer_reference` is a separate brute-force implementation (every pixel against
-every Gaussian, autograd only) that the tests check this one against. ``backend="auto"`` uses
-``gsplat.rasterization`` for CUDA tensors when gsplat is installed (its constants differ slightly:
-alpha clamp 0.999, opacity-aware 3.33 sigma extent).
+every Gaussian, autograd only) that the tests check this one against.
+
+Devices. ``backend="auto"`` uses ``gsplat.rasterization`` for CUDA tensors when gsplat's kernels
+load; otherwise (saying why once per process for CUDA) the pure-PyTorch path, which runs on the
+inputs' device (CPU, CUDA, any device with float64; not Apple's MPS) with autocast off (sums in the
+inputs' dtype). Its host reads per camera are two, both in bin_gaussians and both sizing buffers:
+the number of (Gaussian, block row) pairs, then the per-block list lengths, from which the walk is
+planned on the host; the walk and the backward pass read nothing back. On a CPU the walk also drops
+blocks whose pixels have all stopped, a free check there; on a device that check would be a host
+read per step, so blocks walk their whole lists (stopped pixels add zeros). float64 is used only in
+the O(N) projection and binning, negligible next to compositing even at a consumer GPU's float64
+rate.
 """
 from __future__ import annotations
 
+import functools
 import importlib
 import math
+import warnings
 from typing import NamedTuple
 
 import torch
@@ -67,17 +81,19 @@ from datagen.cameras import pixel_intrinsics
 from .gaussians import Gaussians
 
 EPS2D = 0.3                 # px^2 added to the 2D covariance diagonal
-ALPHA_MAX = 0.99            # alpha clamp
+ALPHA_MAX = 0.999           # alpha clamp
 ALPHA_MIN = 1.0 / 255.0     # smaller alphas are skipped
 T_MIN = 1e-4                # a pixel stops before its transmittance would drop below this
-EXTENT_SIGMAS = 3.0         # tile extent of a Gaussian, in standard deviations of its major axis
-LAMBDA_FLOOR = 0.1          # floor of (mid^2 - det) in the eigenvalue formula, as in the reference 3DGS
+EXTENT_SIGMAS = 3.33        # cap of the tile box, in standard deviations along each image axis
 DEPTH_ALPHA_FLOOR = 1e-10   # expected depth = sum(w z) / max(alpha, this), as gsplat's "ED"
 SCALE_MAX = 1e30            # world units; larger scales are clamped (the projection stays finite)
 
-# The fast path evaluates at most this many (pixel, Gaussian) pairs per vectorized step: about
-# 1 MiB per float32 buffer, so a step's working set stays in the caches.
+# The fast path evaluates at most this many (pixel, Gaussian) pairs per vectorized step: on a CPU
+# about 1 MiB per float32 buffer, so a step's working set stays in the caches; on other devices
+# 16 MiB, so that each kernel has work enough to hide its launch (a choice, not a measurement; the
+# backward pass holds 7 such buffers).
 STEP_PAIRS = 1 << 18
+DEVICE_STEP_PAIRS = 1 << 22
 CHUNK_MIN, CHUNK_MAX = 16, 256   # Gaussians per block per step (a power of two in this range)
 BLOCK = 4                        # px side of the work blocks (a divisor of tile_size, see bin_gaussians)
 _REACH_MARGIN = 1e-2             # slack on the 1/255 ellipse so rounding never drops a visible pair
@@ -96,23 +112,21 @@ def rasterize(means, quats, scales, opacities, colors, viewmat, K, width: int, h
 
     Conventions are in the module docstring. With viewmat (C, 4, 4) every output gets a leading C
     (background may then be (C, D)); the pure-PyTorch path renders the cameras one after the
-    other, gsplat all of them in one call. ``backend``: "torch" (the pure-PyTorch path, CPU
-    tensors), "gsplat" (``gsplat.rasterization``, CUDA) or "auto" (gsplat for CUDA tensors when it
-    is importable, else torch). A Gaussian with a non-finite parameter is culled: it changes no
-    pixel and gets zero gradients.
+    other, gsplat all of them in one call. ``backend``: "torch" (the pure-PyTorch path, any
+    device), "gsplat" (``gsplat.rasterization``, CUDA) or "auto" (gsplat for CUDA tensors when its
+    kernels load, else torch). Autocast is off inside. A Gaussian with a non-finite parameter is
+    culled: it changes no pixel and gets zero gradients.
     """
     means, quats, scales, opacities, colors = _finite_or_culled(means, quats, scales, opacities, colors)
-    if _use_gsplat(backend, means):
-        return _rasterize_gsplat(means, quats, scales, opacities, colors, viewmat, K, width, height, background,
-                                 near_plane, far_plane, tile_size)
-    if means.device.type != "cpu":
-        raise ValueError(f"the pure-PyTorch rasterizer runs on CPU tensors, not {means.device}; "
-                         "install gsplat for CUDA or move the tensors to the CPU")
-    if viewmat.dim() == 3:
-        return over_cameras(_rasterize_torch, means, quats, scales, opacities, colors, viewmat, K, width, height,
-                            background, near_plane=near_plane, far_plane=far_plane, tile_size=tile_size)
-    return _rasterize_torch(means, quats, scales, opacities, colors, viewmat, K, width, height, background,
-                            near_plane, far_plane, tile_size)
+    with torch.autocast(means.device.type, enabled=False):
+        if _use_gsplat(backend, means.device):
+            return _rasterize_gsplat(means, quats, scales, opacities, colors, viewmat, K, width, height, background,
+                                     near_plane, far_plane, tile_size)
+        if viewmat.dim() == 3:
+            return over_cameras(_rasterize_torch, means, quats, scales, opacities, colors, viewmat, K, width,
+                                height, background, near_plane=near_plane, far_plane=far_plane, tile_size=tile_size)
+        return _rasterize_torch(means, quats, scales, opacities, colors, viewmat, K, width, height, background,
+                                near_plane, far_plane, tile_size)
 
 
 def _rasterize_torch(means, quats, scales, opacities, colors, viewmat, K, width, height, background, near_plane,
@@ -127,13 +141,12 @@ def _rasterize_torch(means, quats, scales, opacities, colors, viewmat, K, width,
 def _finite_or_culled(means, quats, scales, opacities, colors):
     """The inputs with every Gaussian that has a NaN or infinite parameter replaced by a harmless one
     of opacity 0 (culled). ``torch.where`` passes no gradient to the replaced values, so a NaN
-    never reaches a gradient (arithmetic on it would, even multiplied by zero)."""
+    never reaches a gradient (arithmetic on it would, even multiplied by zero). Applied to every
+    Gaussian, so that nothing is read back from the device."""
     finite = (torch.isfinite(means).all(-1) & torch.isfinite(quats).all(-1) & torch.isfinite(scales).all(-1)
               & torch.isfinite(opacities) & torch.isfinite(colors).all(-1))
-    if bool(finite.all()):
-        return means, quats, scales, opacities, colors
     keep = finite[:, None]
-    identity = quats.new_tensor([1.0, 0.0, 0.0, 0.0])
+    identity = torch.eye(1, 4, dtype=quats.dtype, device=quats.device)[0]  # (1, 0, 0, 0), made on the device
     return (torch.where(keep, means, 0.0), torch.where(keep, quats, identity), torch.where(keep, scales, 1.0),
             torch.where(finite, opacities, 0.0), torch.where(keep, colors, 0.0))
 
@@ -172,7 +185,7 @@ class Projection(NamedTuple):
     log_opacities: torch.Tensor  # (N,) log(opacity)
     cov2d: torch.Tensor          # (N, 3) float64 (xx, xy, yy) of the 2D covariance, px^2 (no gradient)
     det2d: torch.Tensor          # (N,) float64 determinant of the 2D covariance, px^4 (no gradient; 1 if culled)
-    radii: torch.Tensor          # (N,) float64 tile extent r in px (no gradient)
+    radii: torch.Tensor          # (N, 2) float64 half sizes (rx, ry) of the tile box, px (no gradient)
     valid: torch.Tensor          # (N,) bool: not culled
 
 
@@ -184,7 +197,7 @@ def project(means, quats, scales, opacities, viewmat, K, width: int, height: int
     2x3 projected factor (rows m0, m1: cov2d = M M^T + EPS2D I), the determinant is computed as
     ``|m0 x m1|^2 + EPS2D (|m0|^2 + |m1|^2) + EPS2D^2`` (Lagrange's identity): positive, and free of
     the cancellation of ``a c - b^2`` that culls or distorts needle-like Gaussians (one axis of
-    1e6 px and more); the eigenvalue's ``mid^2 - det`` is likewise ``((a - c) / 2)^2 + b^2``.
+    1e6 px and more).
     """
     wd = torch.float64
     view, Kd = viewmat.to(wd), K.detach().to(wd)
@@ -203,21 +216,28 @@ def project(means, quats, scales, opacities, viewmat, K, width: int, height: int
     det = torch.where(ok, det, torch.ones_like(det))
     conics = torch.stack([c, -b, a], -1) / det[:, None]
     means2d = torch.stack([fx * x / z + cx, fy * y / z + cy], -1)
-    spread = (0.25 * (a - c).square() + b * b).clamp_min(LAMBDA_FLOOR)  # = mid^2 - det, floored
-    radii = torch.ceil(EXTENT_SIGMAS * torch.sqrt(0.5 * (a + c) + torch.sqrt(spread)))
     dtype = means.dtype
     valid = ok & (opacities >= ALPHA_MIN) & torch.isfinite(means2d.to(dtype)).all(-1)
     keep = valid[:, None]
+    cov2d = torch.stack([a, b, c], -1).detach()
     return Projection(
         means2d=torch.where(keep, means2d, 0.0).to(dtype),
         conics=torch.where(keep, conics, 0.0).to(dtype),
         depths=torch.where(valid, z, 0.0).to(dtype),
         log_opacities=torch.log(torch.where(valid, opacities, torch.ones_like(opacities))),
-        cov2d=torch.where(keep, torch.stack([a, b, c], -1), 0.0).detach(),
+        cov2d=torch.where(keep, cov2d, 0.0),
         det2d=torch.where(valid, det, 1.0).detach(),
-        radii=torch.where(valid, radii, 0.0).detach(),
+        radii=torch.where(keep, tile_radii(cov2d, opacities.detach().to(wd)), 0.0),
         valid=valid,
     )
+
+
+def tile_radii(cov2d, opacities):
+    """(N, 2) half sizes (rx, ry) px of the tile boxes, ``ceil(e sqrt(cov2d_xx))`` and
+    ``ceil(e sqrt(cov2d_yy))`` with ``e = min(3.33, sqrt(2 ln(o / (1/255))))``, from cov2d (N, 3)
+    (xx, xy, yy) px^2 and the (N,) opacities (module docstring; NaN below opacity 1/255: culled)."""
+    extent = torch.sqrt(2.0 * torch.log(opacities / ALPHA_MIN)).clamp_max(EXTENT_SIGMAS)
+    return torch.ceil(extent[:, None] * torch.sqrt(cov2d[:, 0::2]))
 
 
 def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
@@ -250,20 +270,20 @@ class Bins(NamedTuple):
     block: int
     blocks_x: int
     blocks_y: int
-    gaussian_ids: torch.Tensor  # (M,) int64
-    offsets: torch.Tensor       # (blocks,) int64: start of each block's list in gaussian_ids
-    counts: torch.Tensor        # (blocks,) int64: length of each block's list
+    gaussian_ids: torch.Tensor  # (M,) int64, on the device of the Gaussians
+    offsets: torch.Tensor       # (blocks,) int64 on the CPU: start of each block's list in gaussian_ids
+    counts: torch.Tensor        # (blocks,) int64 on the CPU: length of each block's list
 
 
 def tile_ranges(means2d, radii, width: int, height: int, tile_size: int):
-    """Tile box [x0, x1) x [y0, y1) (int64 tensors) that each Gaussian's [u +- r] x [v +- r] touches."""
+    """Tile box [x0, x1) x [y0, y1) (int64 tensors) that each Gaussian's [u +- rx] x [v +- ry] touches."""
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
     u, v = means2d.detach().to(torch.float64).unbind(-1)
-    r = radii.to(torch.float64)
+    rx, ry = radii.to(torch.float64).unbind(-1)
     box = lambda lo, hi, n: (torch.floor(lo / tile_size).clamp(0, n).long(),  # noqa: E731
                              torch.ceil(hi / tile_size).clamp(0, n).long())
-    x0, x1 = box(u - r, u + r, tiles_x)
-    y0, y1 = box(v - r, v + r, tiles_y)
+    x0, x1 = box(u - rx, u + rx, tiles_x)
+    y0, y1 = box(v - ry, v + ry, tiles_y)
     return x0, x1, y0, y1
 
 
@@ -276,7 +296,8 @@ def bin_gaussians(proj: Projection, width: int, height: int, tile_size: int = 16
     ``o exp(-0.5 d^T conic d) >= 1/255`` spans a pixel column of the block within the block's rows.
     (ii) only drops pairs whose alpha is below 1/255 on the whole block, which compositing skips
     anyway: the image is the one whole tiles give, for much less work. The ellipse's exact column
-    range is computed once per (Gaussian, block row).
+    range is computed once per (Gaussian, block row). Reads two numbers back from the device: the
+    count of (Gaussian, block row) pairs and the per-block list lengths (see the module docstring).
     """
     block = math.gcd(tile_size, BLOCK)
     per_tile = tile_size // block
@@ -290,14 +311,16 @@ def bin_gaussians(proj: Projection, width: int, height: int, tile_size: int = 16
     half_y = torch.sqrt(reach * syy)
     # Block rows holding a pixel-centre row inside the ellipse, within the tile box and the image.
     by0 = torch.maximum(y0 * per_tile, torch.floor(torch.ceil(v - half_y - 0.5) / block).clamp(0, blocks_y).long())
-    by1 = torch.minimum(torch.minimum(y1 * per_tile, torch.tensor(blocks_y)),
+    by1 = torch.minimum((y1 * per_tile).clamp_max(blocks_y),
                         torch.floor(torch.floor(v + half_y - 0.5) / block).clamp(-1, blocks_y).long() + 1)
     n_rows = torch.where(proj.valid, (by1 - by0).clamp_min(0), 0)
     order = torch.argsort(proj.depths.detach(), stable=True)  # pairs are generated front to back
-    g_row = torch.repeat_interleave(order, n_rows[order])
-    by = by0[g_row] + _ranks(n_rows[order])
+    n_rows = n_rows[order]
+    total_rows = int(n_rows.sum())                      # host read 1: sizes the row pairs
+    g_row = torch.repeat_interleave(order, n_rows, output_size=total_rows)
+    by = by0[g_row] + _ranks(n_rows, total_rows)
     per_gaussian = torch.stack([u, v, sxx, sxy, syy, det, reach, half_y, (x0 * per_tile).double(),
-                                torch.minimum(x1 * per_tile, torch.tensor(blocks_x)).double()], 1)
+                                (x1 * per_tile).clamp_max(blocks_x).double()], 1)
     u, v, sxx, sxy, syy, det, reach, half_y, bx_first, bx_end = per_gaussian.index_select(0, g_row).unbind(1)
     y_lo = torch.maximum(by * block + 0.5 - v, -half_y)     # pixel-centre rows of the block, in the ellipse
     y_hi = torch.minimum(by * block + (block - 0.5) - v, half_y)
@@ -305,17 +328,25 @@ def bin_gaussians(proj: Projection, width: int, height: int, tile_size: int = 16
     bx0 = torch.maximum(torch.floor(torch.ceil(u + x_lo - 0.5) / block), bx_first)
     bx1 = torch.minimum(torch.floor(torch.floor(u + x_hi - 0.5) / block) + 1, bx_end)
     n_blocks = torch.where(y_lo <= y_hi, (bx1 - bx0).clamp_min(0), 0.0).long()
-    gid = torch.repeat_interleave(g_row, n_blocks)
-    ids = torch.repeat_interleave(by * blocks_x + bx0.long(), n_blocks) + _ranks(n_blocks)
+    first = torch.where(n_blocks > 0, by * blocks_x + bx0.long(), 0)  # each row's run of block ids
+    # Per-block list lengths from the runs' ends (+1 at the first block, -1 after the last), read
+    # back once: they size the pairs and plan the compositing walk.
+    edges = torch.zeros(blocks_x * blocks_y + 1, dtype=torch.long, device=first.device)
+    edges.index_add_(0, first, torch.ones_like(first)).index_add_(0, first + n_blocks, -torch.ones_like(first))
+    counts = torch.cumsum(edges[:-1], 0).cpu()           # host read 2
+    total = int(counts.sum())
+    gid = torch.repeat_interleave(g_row, n_blocks, output_size=total)
+    ids = torch.repeat_interleave(first, n_blocks, output_size=total) + _ranks(n_blocks, total)
     ids, perm = torch.sort(ids, stable=True)            # stable: depth order survives within a block
-    counts = torch.bincount(ids, minlength=blocks_x * blocks_y)
     return Bins(width, height, block, blocks_x, blocks_y, gid[perm], torch.cumsum(counts, 0) - counts, counts)
 
 
-def _ranks(counts: torch.Tensor) -> torch.Tensor:
-    """0, 1, ..., counts[0] - 1, 0, 1, ..., counts[1] - 1, ...: the index of each repeat."""
+def _ranks(counts: torch.Tensor, total: int) -> torch.Tensor:
+    """0, 1, ..., counts[0] - 1, 0, 1, ..., counts[1] - 1, ...: the index of each repeat (total =
+    counts.sum(), known on the host)."""
     starts = torch.cumsum(counts, 0) - counts
-    return torch.arange(int(counts.sum())) - torch.repeat_interleave(starts, counts)
+    return (torch.arange(total, device=counts.device)
+            - torch.repeat_interleave(starts, counts, output_size=total))
 
 
 def _ellipse_columns(sxx, sxy, syy, det, reach, y_lo, y_hi):
@@ -356,18 +387,29 @@ def finish(acc, background):
     return colors, alpha, depth
 
 
-def _use_gsplat(backend: str, means) -> bool:
+def _use_gsplat(backend: str, device: torch.device) -> bool:
+    """Whether ``rasterize`` hands tensors on ``device`` to gsplat (its docstring). "auto" checks that
+    gsplat's CUDA kernels load (gsplat builds them on first use, which takes minutes once) and
+    otherwise takes the pure-PyTorch path, saying why once per reason."""
     if backend not in ("auto", "torch", "gsplat"):
         raise ValueError(f"unknown backend {backend!r}; choose auto, torch or gsplat")
-    if backend == "torch" or (backend == "auto" and not means.is_cuda):
-        return False
+    if backend != "auto" or device.type != "cuda":
+        return backend == "gsplat"
     try:
-        importlib.import_module("gsplat")
-    except ImportError:
-        if backend == "gsplat":
-            raise
+        kernels = importlib.import_module("gsplat.cuda._backend")._C
+    except (ImportError, RuntimeError, OSError) as e:  # not installed, or torch's extension build failed
+        _say_torch_on_cuda(f"gsplat is unusable here ({type(e).__name__}: {(str(e) or '-').splitlines()[0]})")
         return False
-    return True
+    if kernels is None:
+        _say_torch_on_cuda("gsplat found no CUDA toolkit (nvcc) to build its kernels")
+    return kernels is not None
+
+
+@functools.cache
+def _say_torch_on_cuda(reason: str) -> None:
+    """The warning, once per process and reason, that CUDA tensors take the pure-PyTorch path."""
+    warnings.warn(f"{reason}: CUDA tensors are rendered by the pure-PyTorch rasterizer (same images, slower); "
+                  "see 'Rasterizer on GPUs' in the README", stacklevel=4)
 
 
 def _rasterize_gsplat(means, quats, scales, opacities, colors, viewmat, K, width, height, background, near_plane,
@@ -404,17 +446,19 @@ class _Step(NamedTuple):
 
 
 class _Geometry:
-    """Pixel coordinates of a block and block centres, in the dtype of the computation."""
+    """Pixel coordinates of a block and block centres, in the dtype and on the device of the computation."""
 
-    def __init__(self, bins: Bins, dtype):
+    def __init__(self, bins: Bins, dtype, device: torch.device):
         bs = bins.block
         self.pixels = bs * bs
-        self.coords = torch.arange(bs, dtype=dtype) + (0.5 - bs / 2)  # pixel centres from the block centre
+        # Pixel centres from the block centre.
+        self.coords = torch.arange(bs, dtype=dtype, device=device) + (0.5 - bs / 2)
         yy, xx = torch.meshgrid(self.coords, self.coords, indexing="ij")
         self.moment_basis = torch.stack([torch.ones_like(xx), xx, yy, xx * xx, xx * yy, yy * yy]).reshape(6, -1)
-        block = torch.arange(bins.blocks_x * bins.blocks_y)
+        block = torch.arange(bins.blocks_x * bins.blocks_y, device=device)
         self.centres = torch.stack([(block % bins.blocks_x) * bs, (block // bins.blocks_x) * bs], -1).to(dtype) + bs / 2
-        self.capacity = max(STEP_PAIRS, self.pixels * CHUNK_MIN)
+        step_pairs = STEP_PAIRS if device.type == "cpu" else DEVICE_STEP_PAIRS
+        self.capacity = max(step_pairs, self.pixels * CHUNK_MIN)
 
     def chunk_length(self, n_blocks: int, longest: int) -> int:
         """Gaussians per block for a step over n_blocks blocks whose longest remaining list is
@@ -423,11 +467,11 @@ class _Geometry:
         return min(1 << (k.bit_length() - 1), 1 << (longest - 1).bit_length())
 
 
-def _outside_image(bins: Bins) -> torch.Tensor:
+def _outside_image(bins: Bins, device: torch.device) -> torch.Tensor:
     """(blocks, P) bool: pixels of edge blocks that lie outside the image."""
     bs = bins.block
-    cols = torch.arange(bins.blocks_x * bs).reshape(bins.blocks_x, 1, bs) >= bins.width
-    rows = torch.arange(bins.blocks_y * bs).reshape(bins.blocks_y, bs, 1) >= bins.height
+    cols = torch.arange(bins.blocks_x * bs, device=device).reshape(bins.blocks_x, 1, bs) >= bins.width
+    rows = torch.arange(bins.blocks_y * bs, device=device).reshape(bins.blocks_y, bs, 1) >= bins.height
     mask = rows[:, None, :, :] | cols[None, :, :, :]  # (blocks_y, blocks_x, bs, bs)
     return mask.reshape(bins.blocks_x * bins.blocks_y, bs * bs)
 
@@ -447,11 +491,12 @@ def _image_to_blocks(x: torch.Tensor, bins: Bins) -> torch.Tensor:
     return x.reshape(bins.blocks_x * bins.blocks_y, -1, bs * bs).contiguous()
 
 
-def _gather(table, bins: Bins, geo: _Geometry, blocks, done_count, k: int):
-    """Gaussian ids and table rows of the next k Gaussians of each block (padded with log-opacity -inf)."""
-    j = torch.arange(k)
-    idx = bins.offsets[blocks, None] + done_count[blocks, None] + j
-    pad = j >= (bins.counts[blocks] - done_count[blocks])[:, None]
+def _gather(table, bins: Bins, geo: _Geometry, blocks, start, remaining, k: int):
+    """Gaussian ids and table rows of the next k Gaussians of each block (padded with log-opacity -inf):
+    those from position ``start`` of its list, of which ``remaining`` are left ((b,) device tensors)."""
+    j = torch.arange(k, device=table.device)
+    idx = start[:, None] + j
+    pad = j >= remaining[:, None]
     gids = torch.take(bins.gaussian_ids, idx.clamp_max(bins.gaussian_ids.numel() - 1))
     params = table.index_select(0, gids.flatten()).view(*gids.shape, -1)
     params[..., _U:_V + 1] -= geo.centres[blocks][:, None, :]
@@ -537,41 +582,52 @@ def _exponent_grads(moments, params):
     return torch.stack([a * sx + b * sy, b * sx + c * sy, -0.5 * sxx, -sxy, -0.5 * syy, m0], -1)
 
 
+@functools.cache
 def _below(x: float, dtype) -> float:
     """The largest value of ``dtype`` below x: ``threshold_(t, _below(x), v)`` keeps t >= x."""
     return torch.nextafter(torch.tensor(x, dtype=dtype), torch.tensor(-math.inf, dtype=dtype)).item()
 
 
 def _composite_forward(table, bins: Bins, geo: _Geometry):
-    """Walk every block's list front to back -> ((blocks, F, P) sums, steps for the backward pass)."""
+    """Walk every block's list front to back -> ((blocks, F, P) sums, steps for the backward pass).
+
+    The walk is planned on the host from ``bins.counts``; each step's block ids and list positions
+    go to the device in one non-blocking copy (no wait for the device). On a CPU, blocks whose
+    pixels have all stopped leave the walk (module docstring)."""
+    device, dtype = table.device, table.dtype
     n_blocks, pixels = bins.blocks_x * bins.blocks_y, geo.pixels
-    carry = torch.zeros(n_blocks, pixels, dtype=table.dtype).masked_fill_(_outside_image(bins), -math.inf)
-    acc = torch.zeros(n_blocks, table.shape[1] - _FEAT, pixels, dtype=table.dtype)
-    workspace = torch.empty(4, geo.capacity, dtype=table.dtype)
-    done_count = torch.zeros(n_blocks, dtype=torch.long)
+    carry = torch.zeros(n_blocks, pixels, dtype=dtype, device=device).masked_fill_(_outside_image(bins, device),
+                                                                                   -math.inf)
+    acc = torch.zeros(n_blocks, table.shape[1] - _FEAT, pixels, dtype=dtype, device=device)
+    workspace = torch.empty(4, geo.capacity, dtype=dtype, device=device)
+    done_count = torch.zeros(n_blocks, dtype=torch.long)   # host, as bins.counts and bins.offsets
     active = torch.nonzero(bins.counts > 0).flatten()
     steps = []
     while active.numel():
         k = geo.chunk_length(active.numel(), int((bins.counts[active] - done_count[active]).max()))
-        for blocks in active.split(max(1, geo.capacity // (pixels * k))):
-            gids, params = _gather(table, bins, geo, blocks, done_count, k)
+        for batch in active.split(max(1, geo.capacity // (pixels * k))):
+            plan = torch.stack([batch, bins.offsets[batch] + done_count[batch], bins.counts[batch] - done_count[batch]])
+            blocks, start, remaining = plan.to(device, non_blocking=True)
+            gids, params = _gather(table, bins, geo, blocks, start, remaining, k)
             carry_in = carry.index_select(0, blocks)
             out, carry_out = _forward_step(workspace, params, carry_in, geo.coords, pixels)
             carry.index_copy_(0, blocks, carry_out)
             acc.index_add_(0, blocks, out)
             steps.append(_Step(blocks, gids, params, carry_in))
         done_count[active] += k
-        finished = torch.isneginf(carry[active]).all(1) | (done_count[active] >= bins.counts[active])
+        finished = done_count[active] >= bins.counts[active]
+        if device.type == "cpu":
+            finished |= torch.isneginf(carry[active]).all(1)
         active = active[~finished]
     return acc, steps
 
 
 def _composite_backward(grad_blocks, steps, n_gaussians: int, geo: _Geometry):
     """Replay the steps back to front -> (N, 6 + F) dL/d table columns."""
-    dtype = grad_blocks.dtype
-    grads = torch.zeros(n_gaussians, _FEAT + grad_blocks.shape[1], dtype=dtype)
-    behind = torch.zeros(grad_blocks.shape[0], grad_blocks.shape[2], dtype=dtype)
-    workspace = torch.empty(7, geo.capacity, dtype=dtype)
+    like = dict(dtype=grad_blocks.dtype, device=grad_blocks.device)
+    grads = torch.zeros(n_gaussians, _FEAT + grad_blocks.shape[1], **like)
+    behind = torch.zeros(grad_blocks.shape[0], grad_blocks.shape[2], **like)
+    workspace = torch.empty(7, geo.capacity, **like)
     for step in reversed(steps):
         g = grad_blocks.index_select(0, step.blocks)
         d_table, total = _backward_step(workspace, step.params, step.carry_in, g, behind.index_select(0, step.blocks),
@@ -588,7 +644,7 @@ class _Composite(torch.autograd.Function):
     def forward(ctx, means2d, conics, log_opacities, colors, depths, bins: Bins):
         table = torch.cat([means2d, conics, log_opacities[:, None], colors, depths[:, None],
                            torch.ones_like(depths)[:, None]], -1).contiguous()
-        geo = _Geometry(bins, table.dtype)
+        geo = _Geometry(bins, table.dtype, table.device)
         acc, steps = _composite_forward(table, bins, geo)
         ctx.bins, ctx.geo, ctx.steps = bins, geo, steps
         ctx.n_gaussians, ctx.n_colors = means2d.shape[0], colors.shape[-1]

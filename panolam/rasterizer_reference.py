@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import torch
 
-from .rasterizer import ALPHA_MAX, ALPHA_MIN, EPS2D, EXTENT_SIGMAS, LAMBDA_FLOOR, T_MIN, finish, over_cameras
+from .rasterizer import ALPHA_MAX, ALPHA_MIN, EPS2D, EXTENT_SIGMAS, T_MIN, finish, over_cameras
 
 
 
@@ -48,7 +48,7 @@ def rasterize_reference(means, quats, scales, opacities, colors, viewmat, K, wid
 
 
 def _reference_projection(means, quats, scales, opacities, viewmat, K, width, height, near_plane, far_plane):
-    """-> means2d (N, 2), conic matrices (N, 2, 2), depths (N,), radii (N,), valid (N,)."""
+    """-> means2d (N, 2), conic matrices (N, 2, 2), depths (N,), radii (N, 2) (rx, ry), valid (N,)."""
     dtype = means.dtype
     rot_w, trans_w = viewmat[:3, :3].to(dtype), viewmat[:3, 3].to(dtype)
     cam = means @ rot_w.T + trans_w
@@ -77,9 +77,9 @@ def _reference_projection(means, quats, scales, opacities, viewmat, K, width, he
     det = torch.linalg.det(cov2d)
     valid = in_depth & (det > 0) & (opacities >= ALPHA_MIN)
     conic = torch.linalg.inv(torch.where(valid[:, None, None], cov2d, torch.eye(2, dtype=dtype)))
-    mid = 0.5 * (cov2d[:, 0, 0] + cov2d[:, 1, 1]).detach()
-    lam_max = mid + torch.sqrt((mid * mid - det.detach()).clamp_min(LAMBDA_FLOOR))
-    radius = torch.ceil(EXTENT_SIGMAS * torch.sqrt(lam_max))
+    # Half box of the ellipse o exp(-0.5 d^T cov2d^-1 d) >= ALPHA_MIN, at most EXTENT_SIGMAS sigma per axis.
+    sigmas = torch.sqrt(2.0 * torch.log(opacities.detach().clamp_min(ALPHA_MIN) / ALPHA_MIN)).clamp_max(EXTENT_SIGMAS)
+    radius = torch.ceil(sigmas[:, None] * torch.sqrt(torch.diagonal(cov2d.detach(), dim1=1, dim2=2)))
     mean2d = torch.stack([fx * cam[:, 0] / z_safe + cx, fy * cam[:, 1] / z_safe + cy], -1)
     return mean2d, conic, z, radius, valid
 
@@ -93,6 +93,7 @@ def _reference_tile_cover(mean2d, radius, width, height, tile_size):
     """(P, N) bool: the pixel's tile lies in the Gaussian's tile box."""
     rows, cols = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
     tile_x, tile_y = (cols.reshape(-1, 1) // tile_size), (rows.reshape(-1, 1) // tile_size)
-    u, v, r = mean2d[:, 0].double(), mean2d[:, 1].double(), radius.double()
-    return ((tile_x >= torch.floor((u - r) / tile_size)) & (tile_x < torch.ceil((u + r) / tile_size))
-            & (tile_y >= torch.floor((v - r) / tile_size)) & (tile_y < torch.ceil((v + r) / tile_size)))
+    u, v = mean2d[:, 0].double(), mean2d[:, 1].double()
+    rx, ry = radius[:, 0].double(), radius[:, 1].double()
+    return ((tile_x >= torch.floor((u - rx) / tile_size)) & (tile_x < torch.ceil((u + rx) / tile_size))
+            & (tile_y >= torch.floor((v - ry) / tile_size)) & (tile_y < torch.ceil((v + ry) / tile_size)))

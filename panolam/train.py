@@ -11,11 +11,15 @@ predicted planes and the GAN's planes when the dataset stores them (``--save-pla
 perceptual term is LPIPS when its weights are given, otherwise D-SSIM ``(1 - SSIM) / 2`` (the log
 says which).
 
-Optimizer: Adam, linear warm-up then cosine decay, gradient-norm clipping; bf16 autocast on CUDA.
-A checkpoint (:mod:`panolam.checkpoints`) holds model, optimizer, scheduler, RNG states, step, both
-configs and what the run trains on (manifest and dataset hashes, the training subjects); since the
-data order is a pure function of (seed, sample index), resuming continues exactly, and a resume
-with another manifest is refused. Several processes (:mod:`panolam.launch`) average gradients with
+Optimizer: Adam, linear warm-up then cosine decay, gradient-norm clipping; bf16 autocast of the
+network on CUDA (:func:`bf16_autocast`; renders and losses stay float32). A step reads from the
+device once, after the update: the loss, its parts, the gradient norm and the largest parameter (a
+non-finite loss, gradient or parameter stops the run before anything is saved); several processes
+then agree on stopping in one small all-reduce. A checkpoint (:mod:`panolam.checkpoints`) holds
+model, optimizer, scheduler, RNG states, step, both configs and what the run trains on (manifest
+and dataset hashes, the training subjects); since the data order is a pure function of (seed,
+sample index), resuming continues exactly, also on another kind of device, and a resume with
+another manifest is refused. Several processes (:mod:`panolam.launch`) average gradients with
 torch.distributed (gloo on CPU, nccl on CUDA); each takes its own slice of every global batch.
 """
 from __future__ import annotations
@@ -30,6 +34,7 @@ import torch
 import torch.distributed as dist
 import torch.nn.functional as F
 
+from datagen.device import constant
 from datagen.errors import UserError
 from datagen.files import sha256_file
 from datagen.manifests import read_manifest
@@ -75,8 +80,16 @@ def _channels_first(x: torch.Tensor) -> torch.Tensor:
     return x.permute(0, 1, 4, 2, 3)
 
 
+def bf16_autocast(device) -> bool:
+    """Whether training on ``device`` (a torch.device or its name) runs the network under bf16 autocast:
+    on CUDA, where bf16 matrix products are several times faster; elsewhere float32 (CPU bf16 is
+    slower than float32 on most CPUs)."""
+    return torch.device(device).type == "cuda"
+
+
 def compute_losses(model: PanoLAM, batch: Views, cfg: TrainConfig, perceptual: Perceptual, autocast: bool = False):
-    """Forward the inputs, render the targets; returns (total loss, named parts, renders for logging)."""
+    """Forward the inputs (under bf16 autocast when ``autocast``), render the targets in float32;
+    returns (total loss, named parts, renders for logging)."""
     core = model.module if hasattr(model, "module") else model
     inputs = batch.inputs if batch.inputs is not None else batch.images[:, 0]
     targets, masks = batch.images[:, 1:], batch.masks[:, 1:]
@@ -84,13 +97,13 @@ def compute_losses(model: PanoLAM, batch: Views, cfg: TrainConfig, perceptual: P
     with torch.autocast(inputs.device.type, dtype=torch.bfloat16, enabled=autocast):
         rec: Reconstruction = model(inputs)
     res = cfg.render_resolution
-    bg = inputs.new_tensor(BACKGROUND)
+    bg = constant(BACKGROUND, inputs.device)
     parts, renders = {}, {}
     rgb_terms = []
     for name, g in (("dense", rec.dense), ("coarse", rec.coarse)):
         if g is None:
             continue
-        rgb, alpha, _ = render_views(g.to(torch.float32), cam2world, K, res, background=bg)
+        rgb, alpha, _ = render_views(g.to(torch.float32), cam2world, K, res, background=bg, backend=cfg.rasterizer)
         rgb, alpha = _channels_first(rgb), _channels_first(alpha)
         renders[name] = rgb
         parts[f"l1_{name}"] = (rgb - targets).abs().mean()
@@ -168,13 +181,15 @@ def check_start(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, r
     return state, dataset, data_info
 
 
-def _agreed(world: int, device, *flags: bool) -> list[bool]:
-    """Each flag, true on any process (one all-reduce; the flags themselves with a single process)."""
+def _agreed(world: int, device: torch.device, *flags: bool) -> list[bool]:
+    """Each flag, true on any process (the flags themselves with a single process). With several, one
+    all-reduce on ``device`` (NCCL reduces CUDA tensors only) and its read, taken right after the
+    step's read, when the device has nothing else queued."""
     if world == 1:
         return list(flags)
     t = torch.tensor([float(f) for f in flags], device=device)
     dist.all_reduce(t, op=dist.ReduceOp.MAX)
-    return [bool(v) for v in t.tolist()]
+    return [bool(v) for v in t.cpu().tolist()]
 
 
 def sample_indices(step: int, cfg: TrainConfig, rank: int, world: int) -> list[int]:
@@ -196,9 +211,10 @@ class _Steps(torch.utils.data.Sampler):
 
 
 def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume: bool = False,
-          device: str = "cpu", progress: bool = True, until: Optional[int] = None,
+          device="cpu", progress: bool = True, until: Optional[int] = None,
           started: Optional[float] = None) -> dict:
-    """Train (or resume) a run in ``out``; returns the final log entry. Rank 0 writes files.
+    """Train (or resume) a run in ``out`` on ``device`` (a torch.device or its name; this process's
+    own GPU under torch.distributed); returns the final log entry. Rank 0 writes files.
 
     ``until``: stop (with a checkpoint) after this step without changing the schedule, which is set
     by ``cfg.steps``; resuming then continues exactly (used to evaluate a run part way).
@@ -208,7 +224,7 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
     the first step always runs.
     """
     rank, world = _distributed()
-    out = Path(out)
+    out, device = Path(out), torch.device(device)
     started = time.monotonic() if started is None else started
     torch.manual_seed(cfg.seed)
     state, dataset, data_info = check_start(data, manifest, model_cfg, cfg, out, resume)
@@ -224,7 +240,7 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
         torch.set_rng_state(state["rng"])
         step, history = state["step"], state["history"]
     if world > 1:
-        model = torch.nn.parallel.DistributedDataParallel(model)
+        model = torch.nn.parallel.DistributedDataParallel(model, device_ids=[device] if device.type == "cuda" else None)
     perceptual = Perceptual(cfg, device)
     loader = torch.utils.data.DataLoader(dataset, batch_sampler=_Steps(step, cfg, rank, world), collate_fn=collate,
                                          num_workers=cfg.num_workers)
@@ -240,7 +256,7 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
     for batch in _batches(loader):
         batch = batch.to(device)
         t0 = time.perf_counter()
-        loss, parts, renders = compute_losses(model, batch, cfg, perceptual, autocast=device.startswith("cuda"))
+        loss, parts, renders = compute_losses(model, batch, cfg, perceptual, autocast=bf16_autocast(device))
         if step == start and rank == 0:
             _log_text(out, "tri-plane feature loss (lambda_6): " + (
                 "on (the dataset stores SphereHead planes)" if "planes" in parts else
@@ -248,9 +264,13 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         grad_norm = torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)  # of the averaged gradients: agreed
-        # The step's one read from the device: the loss, its parts and the gradient norm together.
-        loss_v, norm_v, *part_v = torch.stack([loss.detach().float(), grad_norm.float(),
-                                               *(v.detach().float() for v in parts.values())]).tolist()
+        lr = scheduler.get_last_lr()[0]
+        _update(optimizer, step, lr)
+        updated = torch.nn.utils.get_total_norm([p.detach() for p in params], float("inf"))
+        # The step's one read from the device: the loss, its parts, the gradient norm and the largest
+        # parameter after the update, copied to the host together.
+        loss_v, norm_v, updated_v, *part_v = torch.stack([loss.detach().float(), grad_norm.float(), updated.float(),
+                                                          *(v.detach().float() for v in parts.values())]).cpu().tolist()
         # Every process takes the same decisions: a bad loss anywhere or the time limit stops them all.
         bad_loss, out_of_time = _agreed(world, device, not math.isfinite(loss_v), clock.next_step_overruns())
         if bad_loss:
@@ -259,8 +279,9 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
         if not math.isfinite(norm_v):
             raise TrainingError(f"non-finite gradient at step {step} (subjects {batch.key} on process {rank}); "
                                 f"the last checkpoint is intact")
-        lr = scheduler.get_last_lr()[0]
-        _update(optimizer, params, step, lr)
+        if not math.isfinite(updated_v):
+            raise TrainingError(f"{_update_failed(step, lr)}: parameters are no longer finite; the last checkpoint "
+                                f"is intact")
         scheduler.step()
         step += 1
         entry = {"step": step, "loss": loss_v, "lr": lr, "grad_norm": norm_v,
@@ -312,18 +333,21 @@ def _batches(loader):
         yield batch
 
 
-def _update(optimizer, params, step: int, lr: float) -> None:
-    """The optimizer step; a TrainingError when it cannot be taken or leaves a parameter non-finite
-    (a learning rate too large for float32, say: the checkpoint on disk is still the last good one)."""
-    what = f"non-finite update at step {step} (learning rate {lr:.3g})"
+def _update_failed(step: int, lr: float) -> str:
+    return f"non-finite update at step {step} (learning rate {lr:.3g})"
+
+
+def _update(optimizer, step: int, lr: float) -> None:
+    """The optimizer step; a TrainingError when it cannot be taken (a learning rate too large for
+    float32, say: the checkpoint on disk is still the last good one). Whether it left every
+    parameter finite is read with the step's other values."""
     try:
         optimizer.step()
     except RuntimeError as e:
         if "overflow" not in str(e):
             raise
-        raise TrainingError(f"{what}: the step overflows float32; the last checkpoint is intact") from None
-    if not torch.isfinite(torch.nn.utils.get_total_norm([p.detach() for p in params], float("inf"))):
-        raise TrainingError(f"{what}: parameters are no longer finite; the last checkpoint is intact")
+        raise TrainingError(f"{_update_failed(step, lr)}: the step overflows float32; the last checkpoint is "
+                            f"intact") from None
 
 
 class _Clock:

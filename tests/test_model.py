@@ -123,10 +123,10 @@ def test_nan_and_extreme_inputs_give_finite_gaussians():
 
 
 def test_spherical_triplane_query_has_finite_gradients_on_its_poles_and_centre():
-    from datagen.gans.triplane import SPHERE_A, SPHERE_B, sample_planes
+    from datagen.gans.triplane import SPHERE_ROTATIONS, sample_planes
     planes = torch.randn(1, 2, 3, 4, 8, 8, requires_grad=True)
     # the centre, and points on the polar axes of both spheres (where the angles are undefined)
-    axes = torch.stack([SPHERE_A @ torch.tensor([0.0, 0.0, 1.0]), SPHERE_B @ torch.tensor([0.0, 0.0, 1.0])])
+    axes = torch.tensor(SPHERE_ROTATIONS) @ torch.tensor([0.0, 0.0, 1.0])
     points = torch.cat([torch.zeros(1, 3), 0.3 * axes, -0.2 * axes, torch.rand(4, 3) - 0.5])[None].requires_grad_()
     feats = sample_planes("spherehead", planes, points, box_warp=1.0)
     assert torch.isfinite(feats).all()

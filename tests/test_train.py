@@ -113,7 +113,7 @@ def test_non_finite_loss_names_step_and_subjects(curated, tmp_path, monkeypatch)
         train(data, manifest, MODEL, FAST, tmp_path / "n", progress=False)
 
 
-def test_non_finite_gradient_stops_before_the_update(curated, tmp_path, monkeypatch):
+def test_non_finite_gradient_stops_before_anything_is_saved(curated, tmp_path, monkeypatch):
     data, manifest = curated
     real = train_module.compute_losses
 

@@ -24,6 +24,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from ..device import constant
 from ..render import RenderSettings, render_rays
 from .networks import (Conv2dLayer, FullyConnectedLayer, MappingNetwork, StyleGAN2Backbone, Superresolution,
                        SynthesisNetwork, ToRGBLayer)
@@ -65,9 +66,10 @@ def _rot_z(a):
     return np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
 
 
-# Row-vector rotations (p @ R), stored in float32 as the originals do.
-SPHERE_A = torch.from_numpy(_rot_y(np.pi / 2.0).T.astype(np.float32))
-SPHERE_B = torch.from_numpy((_rot_y(-np.pi / 2) @ _rot_z(-np.pi / 2.0)).T.astype(np.float32))
+# SphereHead's row-vector rotations (p @ R) of spheres A and B, (2, 3, 3) rounded to float32 as in the
+# originals; nested tuples, so that :func:`constant` makes them once per device.
+SPHERE_ROTATIONS = tuple(tuple(map(tuple, r)) for r in np.stack(
+    [_rot_y(np.pi / 2.0).T, (_rot_y(-np.pi / 2) @ _rot_z(-np.pi / 2.0)).T]).astype(np.float32).tolist())
 
 
 def _spherical(p):
@@ -126,8 +128,9 @@ def sample_planes(kind: str, planes: torch.Tensor, points: torch.Tensor, box_war
                                               padding_mode="zeros", align_corners=False)
         return out.permute(0, 4, 3, 2, 1).reshape(n, 3, m, c)
     if kind == "spherehead":
-        fa, wa = _sample_sphere(planes[:, 0], p @ SPHERE_A)
-        fb, wb = _sample_sphere(planes[:, 1], p @ SPHERE_B)
+        rot_a, rot_b = constant(SPHERE_ROTATIONS, p.device).to(p.dtype)
+        fa, wa = _sample_sphere(planes[:, 0], p @ rot_a)
+        fb, wb = _sample_sphere(planes[:, 1], p @ rot_b)
         return (fa * wa + fb * wb) / (wa + wb + 1.0e-8)
     raise ValueError(f"unknown generator kind {kind!r}")
 
