@@ -3,7 +3,8 @@
 Writes ``benchmarks/reports/gpu_check.{json,md}`` (``gpu_check_dry_run.*`` with ``--dry-run``).
 
     python benchmarks/gpu_check.py              # on a CUDA machine (sized for under 8 min on one H100/H200)
-    python benchmarks/gpu_check.py --dry-run    # the same sections at toy sizes on the CPU (~3 min, 2 cores)
+    python benchmarks/gpu_check.py --dry-run    # the same sections at toy sizes on the CPU (~1 min, 2 cores)
+    python benchmarks/gpu_check.py --sections gan_precision,gan_throughput   # some sections only
 
 Sections (each one is timed; a failure is recorded with its error and the next section runs):
 
@@ -280,35 +281,40 @@ def inference(plan: Plan, trained: dict) -> dict:
 # Running and reporting
 
 
-def run_section(results: dict, key: str, fn, *args) -> None:
-    """results[key] = fn(*args), or the error it raised; with its seconds."""
+def run_section(results: dict, key: str, fn) -> None:
+    """results[key] = fn(), or the error it raised; with its seconds."""
     print(f"{key} ...", flush=True)
     t0 = time.perf_counter()
     try:
-        results[key] = {"result": fn(*args)}
+        results[key] = {"result": fn()}
     except Exception as e:  # a failed section is a finding: record it and go on
         results[key] = {"error": f"{type(e).__name__}: {e}", "traceback": traceback.format_exc()[-3000:]}
     results[key]["seconds"] = time.perf_counter() - t0
     print(f"{key}: {'failed' if 'error' in results[key] else 'done'} in {results[key]['seconds']:.0f} s", flush=True)
 
 
-def measure(plan: Plan, command: str) -> dict:
+SECTIONS = ("cuda_tests", "gan_precision", "gan_throughput", "workers", "training", "inference")
+
+
+def measure(plan: Plan, command: str, sections: tuple = SECTIONS) -> dict:
+    """The chosen sections, in order (inference times the models that training wrote)."""
     results = {"command": command, "dry_run": plan.dry_run, "machine": machine_info(),
                "environment": environment()}
     with tempfile.TemporaryDirectory(prefix="gpu_check_") as tmp:
         scratch = Path(tmp)
-        run_section(results, "cuda_tests", cuda_tests, plan)
-        run_section(results, "gan_precision", gan_precision, plan)
-        run_section(results, "gan_throughput", gan_throughput, plan)
-        run_section(results, "workers", workers, plan, scratch)
-        run_section(results, "training", training, plan, scratch)
-        trained = results["training"].get("result", {})
-        run_section(results, "inference", inference, plan, trained)
+        runners = {"cuda_tests": lambda: cuda_tests(plan), "gan_precision": lambda: gan_precision(plan),
+                   "gan_throughput": lambda: gan_throughput(plan), "workers": lambda: workers(plan, scratch),
+                   "training": lambda: training(plan, scratch),
+                   "inference": lambda: inference(plan, results.get("training", {}).get("result", {}))}
+        for key in sections:
+            run_section(results, key, runners[key])
     return results
 
 
 def _section_lines(results: dict, key: str, title: str, body) -> list[str]:
-    section = results[key]
+    section = results.get(key)
+    if section is None:
+        return []
     lines = ["", f"## {title}", "", f"Section time: {section['seconds']:.0f} s."]
     if "error" in section:
         return lines + ["", f"**Failed**: `{section['error']}`", "", "```", section["traceback"].strip(), "```"]
@@ -369,11 +375,17 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--dry-run", action="store_true", help="toy sizes on the CPU: checks the script only")
     parser.add_argument("--out-dir", type=Path, default=REPORTS, help="where the report goes")
+    parser.add_argument("--sections", default=",".join(SECTIONS),
+                        help=f"comma-separated, in order (default all: {','.join(SECTIONS)}); inference needs training")
     args = parser.parse_args(argv)
+    sections = tuple(s for s in args.sections.split(",") if s)
+    unknown = [s for s in sections if s not in SECTIONS]
+    if unknown:
+        parser.error(f"unknown section(s) {', '.join(unknown)}; choose from {', '.join(SECTIONS)}")
     if not args.dry_run and not torch.cuda.is_available():
         print("gpu_check: no CUDA device here; use --dry-run to check the script on the CPU", file=sys.stderr)
         return 2
-    results = measure(Plan(args.dry_run), command_line(Path(__file__), argv))
+    results = measure(Plan(args.dry_run), command_line(Path(__file__), argv), sections)
     write_report(args.out_dir / (f"{NAME}_dry_run" if args.dry_run else NAME), results, markdown(results))
     failed = [k for k, v in results.items() if isinstance(v, dict) and "error" in v]
     if failed:

@@ -6,16 +6,13 @@ branch and the Gaussian heads, forward and backward through the training losses;
 (one read from the device per step); checkpoints moving between the CPU and a device; the devices
 and process group of data-parallel processes; inference and evaluation. Tests that render with
 :func:`flat_render` check PanoLAM's own code apart from the rasterizer, which has device tests of its
-own; in those through the rasterizer, an error raised inside it is an expected failure naming the line.
+own; the tests through the rasterizer run it too.
 """
 from __future__ import annotations
 
-import contextlib
 import copy
 import math
-import os
 import shutil
-import traceback
 from types import SimpleNamespace
 
 import numpy as np
@@ -83,21 +80,6 @@ def flat_render(g, cam2world, K_norm, resolution, background=None, backend="auto
     return image(rgb), image(alpha), image(torch.ones_like(alpha))
 
 
-@contextlib.contextmanager
-def rasterizer_pending():
-    """An error raised inside panolam/rasterizer.py becomes an expected failure that names the line;
-    any other error fails the test."""
-    try:
-        yield
-    except Exception as e:
-        inside = [f for f in traceback.extract_tb(e.__traceback__)
-                  if f.filename.endswith(os.path.join("panolam", "rasterizer.py"))]
-        if not inside:
-            raise
-        pytest.xfail(f"panolam/rasterizer.py:{inside[-1].lineno} does not run on the device yet: "
-                     f"{type(e).__name__}: {str(e).splitlines()[0]}")
-
-
 def host_sums(tensors) -> torch.Tensor:
     """The absolute sum of each tensor, copied to the host in one transfer."""
     return torch.stack([t.detach().abs().sum() for t in tensors]).cpu()
@@ -150,9 +132,8 @@ def test_losses_through_the_rasterizer_on_the_device(sim, cpu_model):
     """The rasterizer reads the device by design (sizes of its per-tile work), so reads are not counted here."""
     dev, mode = sim
     model, batch = moved(cpu_model, dev), batch_of_views().to(dev)
-    with rasterizer_pending():
-        loss, parts, _ = compute_losses(model, batch, LOSSES, Perceptual(LOSSES, dev))
-        loss.backward()
+    loss, parts, _ = compute_losses(model, batch, LOSSES, Perceptual(LOSSES, dev))
+    loss.backward()
     assert on_device(loss) and all(on_device(v) for v in parts.values())
     assert_trained_on_the_device(model)
 
@@ -316,9 +297,8 @@ def test_inference_runs_on_the_device_and_copies_each_output_once(sim, cpu_model
 def test_inference_through_the_rasterizer_on_the_device(sim, cpu_model, tmp_path):
     dev, mode = sim
     model = moved(cpu_model, dev).eval()
-    with rasterizer_pending():
-        report = infer.run(model, np.random.default_rng(0).random((48, 48, 3)), tmp_path / "head.ply",
-                           resolution=16, frames=2)
+    report = infer.run(model, np.random.default_rng(0).random((48, 48, 3)), tmp_path / "head.ply",
+                       resolution=16, frames=2)
     assert report.written == [tmp_path / "head.ply"]
 
 
