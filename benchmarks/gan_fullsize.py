@@ -34,12 +34,13 @@ from datagen.generators import gan as gan_module  # noqa: E402
 from datagen.generators.base import STREAM_CAMERAS, subject_rng  # noqa: E402
 from datagen.generators.gan import GANConfig, GANHeads  # noqa: E402
 from datagen.gans.checkpoint import LoadedCheckpoint  # noqa: E402
+from datagen.gans.kinds import GAN_KINDS, KINDS  # noqa: E402
 from datagen.gans.triplane import TriPlaneGenerator  # noqa: E402
 from datagen.shards import encode_subject  # noqa: E402
 
 NAME = "gan_fullsize"
-MODELS = ("eg3d", "panohead", "spherehead")
-PROTOCOL = {"eg3d": "frontal", "panohead": "360", "spherehead": "360"}
+MODELS = KINDS
+PROTOCOL = {kind.name: kind.protocol for kind in GAN_KINDS.values()}
 RESOLUTION = 512
 PAPER_SUBJECTS = 165_000  # 48K EG3D + 117K SphereHead subjects kept after curation
 VIEWS = 32

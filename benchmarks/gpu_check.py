@@ -50,9 +50,9 @@ from datagen.cameras import sample_views  # noqa: E402
 from datagen.generators.base import STREAM_CAMERAS, subject_rng  # noqa: E402
 from datagen.generators.gan import GANConfig, GANHeads  # noqa: E402
 from datagen.gans.checkpoint import read_checkpoint  # noqa: E402
+from datagen.gans.kinds import KINDS  # noqa: E402
 
 NAME = "gpu_check"
-KINDS = ("eg3d", "panohead", "spherehead")
 SHARED = Path(os.environ.get("PANOLAM_SHARED", REPO.parent / "shared"))
 PAPER_RECONSTRUCT_S, PAPER_RENDER_MS = 0.11, 3.6  # A100, the paper
 GOAL_IMAGES_PER_S = 200  # 512 px, one H100-class GPU

@@ -13,12 +13,12 @@ import torch
 
 from datagen.cameras import named_views
 from datagen.gans.checkpoint import read_checkpoint
+from datagen.gans.kinds import KINDS
 from datagen.gans.triplane import sample_planes
 from datagen.generators import gan as gan_module
 from tests.conftest import gan_fixture
 from tests.simdev import DeviceMismatch, on_device, simulated_device
 
-KINDS = ("eg3d", "panohead", "spherehead")
 VIEWS = ["front", "back"]
 
 

@@ -22,15 +22,9 @@ import torch
 
 from ..errors import UserError
 from ..files import sha256_file
+from .kinds import GAN_KINDS
 from .triplane import TriPlaneGenerator
 
-OFFICIAL_SOURCES = {
-    "eg3d": "EG3D checkpoints (e.g. ffhq512-128.pkl, ffhqrebalanced512-128.pkl) come from NVIDIA's NGC catalog, "
-            "linked from github.com/NVlabs/eg3d (docs/models.md)",
-    "panohead": "PanoHead checkpoints (e.g. easy-khair-180-gpc0.8-trans10-025000.pkl) are linked from "
-                "github.com/SizheAn/PanoHead",
-    "spherehead": "SphereHead checkpoints (e.g. spherehead-ckpt-025000.pkl) are linked from github.com/lhyfst/SphereHead",
-}
 STUB_PREFIXES = ("training.", "torch_utils.", "dnnlib.", "torch.nn.modules.")
 # Bounds on what a file may make the loader do (the released checkpoints are far inside them).
 MAX_FILE_BYTES = 8 << 30
@@ -188,11 +182,8 @@ def flat_state(stub, max_nodes: int) -> dict:
 
 
 def detect_kind(state: dict, rendering_kwargs: dict) -> str:
-    if "ConvA.0.weight" in state:
-        return "spherehead"
-    if any(k.startswith(("bcg_synthesis.", "t_mapping.")) for k in state) or rendering_kwargs.get("triplane_depth"):
-        return "panohead"
-    return "eg3d"
+    """The kind of a checkpoint: the last of the GAN kinds table that recognises it (EG3D's takes any)."""
+    return next(k.name for k in reversed(GAN_KINDS.values()) if k.recognise(state, rendering_kwargs))
 
 
 @dataclass
@@ -217,7 +208,7 @@ def read_checkpoint(path, expected_kind: str | None = None) -> LoadedCheckpoint:
     Every refusal is one line naming the file.
     """
     path = Path(path)
-    hint = f" ({OFFICIAL_SOURCES[expected_kind]})" if expected_kind in OFFICIAL_SOURCES else ""
+    hint = f" ({GAN_KINDS[expected_kind].source})" if expected_kind in GAN_KINDS else ""
     if not path.exists():
         raise CheckpointError(f"{path}: checkpoint not found{hint}")
     try:

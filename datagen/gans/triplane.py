@@ -1,14 +1,15 @@
 """EG3D, PanoHead and SphereHead tri-plane generators on the project's volume renderer.
 
-Three ways to turn the StyleGAN2 backbone's output into features at a 3D point p (world units,
-scaled by 2/box_warp into the [-1, 1] cube):
+What differs between them is read from their rows of :data:`datagen.gans.kinds.GAN_KINDS`. Three
+plane layouts (``PLANE_SAMPLERS``) turn the StyleGAN2 backbone's output into features at a 3D
+point p (world units, scaled by 2/box_warp into the [-1, 1] cube):
 
-* ``eg3d``: 3 planes of 32 channels sampled at (x, y), (x, z) and (z, x). The third projection is
-  a known quirk of the released code; its checkpoints were trained with it, so we keep it.
-* ``panohead``: a tri-grid, 3 planes of 32 channels x D depth slices, sampled in 3D at (x, y, z),
-  (x, z, y) and (y, z, x); channel index c*D + d.
-* ``spherehead``: two spherical tri-planes A and B (backbone 512 ch -> ConvA / ConvB, 1x1 convs ->
-  D=3 planes x 32 ch each, depth-major). A samples Ry(pi/2) p (seam at the back), B samples
+* ``triplane`` (EG3D): 3 planes of 32 channels sampled at (x, y), (x, z) and (z, x). The third
+  projection is a known quirk of the released code; its checkpoints were trained with it, so we keep it.
+* ``trigrid`` (PanoHead): a tri-grid, 3 planes of 32 channels x D depth slices, sampled in 3D at
+  (x, y, z), (x, z, y) and (y, z, x); channel index c*D + d.
+* ``spheres`` (SphereHead): two spherical tri-planes A and B (backbone 512 ch -> ConvA / ConvB, 1x1
+  convs -> D=3 planes x 32 ch each, depth-major). A samples Ry(pi/2) p (seam at the back), B samples
   Ry(-pi/2) Rz(-pi/2) p (seam at the face); each in spherical coordinates (theta, phi, r) on planes
   (theta, phi), (theta, r), (phi, r); blended by w = (1+cos(pi theta))/2 * (1+cos(pi phi))/2.
 
@@ -26,10 +27,10 @@ from torch import nn
 
 from ..device import constant
 from ..render import RenderSettings, render_rays
+from .kinds import GAN_KINDS, GANKind, gan_kind
 from .networks import (Conv2dLayer, FullyConnectedLayer, MappingNetwork, StyleGAN2Backbone, Superresolution,
                        SynthesisNetwork, ToRGBLayer)
 
-KINDS = ("eg3d", "panohead", "spherehead")
 TRIPLANE_CROP = 0.1
 # 'auto': the originals' float16 blocks (super-resolution, and any backbone blocks the checkpoint
 # marks fp16) run in float16 on CUDA and in float32 elsewhere, as in the originals; 'fp16' forces
@@ -111,28 +112,42 @@ def _sample_sphere(planes, p):
     return _sample_2d(planes, coords.reshape(n * 3, m, 2)), w
 
 
+def _sample_triplane(planes, p, depth):
+    """EG3D's planes (N, 3, C, H, W) at points p (N, M, 3) in the [-1, 1] cube -> (N, 3, M, C)."""
+    x, y, z = p.unbind(-1)
+    n, m = x.shape
+    coords = torch.stack([torch.stack([x, y], -1), torch.stack([x, z], -1), torch.stack([z, x], -1)], 1)
+    return _sample_2d(planes, coords.reshape(n * 3, m, 2))
+
+
+def _sample_trigrid(planes, p, depth):
+    """PanoHead's tri-grid (N, 3, C*D, H, W) at points p (N, M, 3) -> (N, 3, M, C); trilinear."""
+    x, y, z = p.unbind(-1)
+    n, m = x.shape
+    c = planes.shape[2] // depth
+    grid = planes.reshape(n * 3, c, depth, planes.shape[-2], planes.shape[-1])
+    coords = torch.stack([torch.stack([x, y, z], -1), torch.stack([x, z, y], -1), torch.stack([y, z, x], -1)], 1)
+    out = torch.nn.functional.grid_sample(grid, coords.reshape(n * 3, 1, 1, m, 3), mode="bilinear",
+                                          padding_mode="zeros", align_corners=False)
+    return out.permute(0, 4, 3, 2, 1).reshape(n, 3, m, c)
+
+
+def _sample_spheres(planes, p, depth):
+    """SphereHead's spheres (N, 2, 3, C, H, W) at points p (N, M, 3) -> (N, 3, M, C), blended."""
+    rot_a, rot_b = constant(SPHERE_ROTATIONS, p.device).to(p.dtype)
+    fa, wa = _sample_sphere(planes[:, 0], p @ rot_a)
+    fb, wb = _sample_sphere(planes[:, 1], p @ rot_b)
+    return (fa * wa + fb * wb) / (wa + wb + 1.0e-8)
+
+
+# plane layout (GANKind.layout) -> its sampler (planes, points in the [-1, 1] cube, depth D)
+PLANE_SAMPLERS = {"triplane": _sample_triplane, "trigrid": _sample_trigrid, "spheres": _sample_spheres}
+
+
 def sample_planes(kind: str, planes: torch.Tensor, points: torch.Tensor, box_warp: float, depth: int = 3):
     """Per-plane features (N, 3, M, 32) at world points (N, M, 3), for a generator ``kind``."""
-    p = (2 / box_warp) * points
-    x, y, z = p.unbind(-1)
-    if kind == "eg3d":
-        n, m = x.shape
-        coords = torch.stack([torch.stack([x, y], -1), torch.stack([x, z], -1), torch.stack([z, x], -1)], 1)
-        return _sample_2d(planes, coords.reshape(n * 3, m, 2))
-    if kind == "panohead":
-        n, m = x.shape
-        c = planes.shape[2] // depth
-        grid = planes.reshape(n * 3, c, depth, planes.shape[-2], planes.shape[-1])
-        coords = torch.stack([torch.stack([x, y, z], -1), torch.stack([x, z, y], -1), torch.stack([y, z, x], -1)], 1)
-        out = torch.nn.functional.grid_sample(grid, coords.reshape(n * 3, 1, 1, m, 3), mode="bilinear",
-                                              padding_mode="zeros", align_corners=False)
-        return out.permute(0, 4, 3, 2, 1).reshape(n, 3, m, c)
-    if kind == "spherehead":
-        rot_a, rot_b = constant(SPHERE_ROTATIONS, p.device).to(p.dtype)
-        fa, wa = _sample_sphere(planes[:, 0], p @ rot_a)
-        fb, wb = _sample_sphere(planes[:, 1], p @ rot_b)
-        return (fa * wa + fb * wb) / (wa + wb + 1.0e-8)
-    raise ValueError(f"unknown generator kind {kind!r}")
+    sampler = PLANE_SAMPLERS[gan_kind(kind).layout]
+    return sampler(planes, (2 / box_warp) * points, depth)
 
 
 def crop_outside(points: torch.Tensor, box_warp: float) -> torch.Tensor:
@@ -142,37 +157,32 @@ def crop_outside(points: torch.Tensor, box_warp: float) -> torch.Tensor:
 
 
 class TriPlaneGenerator(nn.Module):
-    """One of the three generators, built from the constructor kwargs stored in its checkpoint."""
+    """A generator of ``kind`` (a GAN_KINDS name), built from the constructor kwargs stored in its checkpoint."""
 
     def __init__(self, kind, z_dim, c_dim, w_dim, img_resolution, img_channels=3, sr_num_fp16_res=0,
                  mapping_kwargs=None, rendering_kwargs=None, sr_kwargs=None, channel_base=32768, channel_max=512,
                  conv_clamp=None, num_fp16_res=0, **_ignored):
         super().__init__()
-        if kind not in KINDS:
-            raise ValueError(f"unknown generator kind {kind!r}")
+        spec = gan_kind(kind)
         rk = dict(rendering_kwargs or {})
         self.kind, self.rendering_kwargs = kind, rk
         self.z_dim, self.c_dim, self.w_dim, self.img_resolution = z_dim, c_dim, w_dim, img_resolution
         self.depth = int(rk.get("triplane_depth", 1))
         synthesis = dict(channel_base=channel_base, channel_max=channel_max, conv_clamp=conv_clamp,
                          num_fp16_res=num_fp16_res)
-        if kind == "eg3d":
-            backbone_res, backbone_ch = 256, 32 * 3
-        elif kind == "panohead":
-            backbone_res, backbone_ch = rk["triplane_size"], 32 * 3 * self.depth
-        else:
-            backbone_res, backbone_ch = rk["triplane_size"], 512
+        backbone_res = spec.backbone_resolution or rk["triplane_size"]
+        backbone_ch = spec.backbone_channels(self.depth)
         self.backbone = StyleGAN2Backbone(z_dim, c_dim, w_dim, backbone_res, backbone_ch, mapping_kwargs, **synthesis)
-        if kind == "spherehead":
-            def proj():
-                return nn.Sequential(Conv2dLayer(512, 256, 1, bias=False), Conv2dLayer(256, 32 * self.depth, 1, bias=False))
-            self.ConvA, self.ConvB = proj(), proj()
+        projected_ch = math.prod(spec.plane_shape(self.depth))
+        for name in spec.projections:
+            self.add_module(name, nn.Sequential(Conv2dLayer(backbone_ch, 256, 1, bias=False),
+                                                Conv2dLayer(256, projected_ch, 1, bias=False)))
         sr_name = rk["superresolution_module"].rsplit(".", 1)[-1]
         self.superresolution = Superresolution(sr_name, 32, img_resolution, sr_num_fp16_res, rk.get("sr_antialias", True),
                                                **(sr_kwargs or {}))
-        activation = "sigmoid" if kind == "eg3d" else rk.get("decoder_activation", "sigmoid")
+        activation = spec.decoder_activation or rk.get("decoder_activation", "sigmoid")
         self.decoder = OSGDecoder(32, rk.get("decoder_lr_mul", 1.0), activation)
-        if kind != "eg3d":
+        if spec.panohead_modules:
             self.torgb = ToRGBLayer(32, 3, w_dim) if rk.get("use_torgb_raw", False) else None
             self.bcg_synthesis = None
             if rk.get("use_background", False):
@@ -182,6 +192,11 @@ class TriPlaneGenerator(nn.Module):
                                             **(mapping_kwargs or {}))
         self.neural_rendering_resolution = 64
         self.precision = "auto"
+
+    @property
+    def spec(self) -> GANKind:
+        """This generator's row of the GAN kinds table (looked up: the table is not pickled with it)."""
+        return GAN_KINDS[self.kind]
 
     def fp16(self, t: torch.Tensor) -> bool:
         """Whether the float16-capable blocks run in float16 for tensors on ``t``'s device."""
@@ -205,13 +220,10 @@ class TriPlaneGenerator(nn.Module):
         """Backbone output shaped for :func:`sample_planes`."""
         raw = self.backbone.synthesis(ws, noise_mode=noise_mode, generator=generator, fp16=self.fp16(ws))
         n, _, h, w = raw.shape
-        if self.kind == "eg3d":
-            return raw.view(n, 3, 32, h, w)
-        if self.kind == "panohead":
-            return raw.view(n, 3, 32 * self.depth, h, w)
-        a = self.ConvA(raw).view(n, 1, self.depth, 32, h, w)
-        b = self.ConvB(raw).view(n, 1, self.depth, 32, h, w)
-        return torch.cat([a, b], 1)
+        shape = self.spec.plane_shape(self.depth)
+        if not self.spec.projections:
+            return raw.view(n, *shape, h, w)
+        return torch.cat([getattr(self, name)(raw).view(n, 1, *shape, h, w) for name in self.spec.projections], 1)
 
     def background(self, ws, noise_mode="const", generator=None):
         """PanoHead/SphereHead's background feature image (N, 32, R, R), or None."""
@@ -232,22 +244,22 @@ class TriPlaneGenerator(nn.Module):
         return self.decoder(self.plane_features(planes, points))
 
     def field(self, planes):
-        """The renderer's field for these planes (crop applied for PanoHead/SphereHead)."""
+        """The renderer's field for these planes (density cropped for kinds that crop it)."""
         box = self.rendering_kwargs["box_warp"]
 
         def query(points, _dirs):
             rgb, sigma = self.decode(planes, points)
-            if self.kind != "eg3d":
+            if self.spec.crops_density:
                 sigma = torch.where(crop_outside(points, box), torch.full_like(sigma, -1e3), sigma)
             return rgb, sigma
         return query
 
     def content_box(self) -> tuple:
-        """Half extents (x, y, z), world units, of the box the planes cover (``box_warp``); PanoHead
-        and SphereHead also crop the density 0.1 inside it in x and z. Outside, the planes are
-        zero-padded and only the decoder's response to zero features (EG3D) remains."""
+        """Half extents (x, y, z), world units, of the box the planes cover (``box_warp``); kinds that
+        crop the density (PanoHead, SphereHead) crop it 0.1 inside it in x and z. Outside, the planes
+        are zero-padded and only the decoder's response to zero features (EG3D) remains."""
         h = self.rendering_kwargs["box_warp"] / 2
-        return (h, h, h) if self.kind == "eg3d" else (h - TRIPLANE_CROP, h, h - TRIPLANE_CROP)
+        return (h - TRIPLANE_CROP, h, h - TRIPLANE_CROP) if self.spec.crops_density else (h, h, h)
 
     def render_settings(self, deterministic: bool) -> RenderSettings:
         rk = self.rendering_kwargs
@@ -288,7 +300,7 @@ class TriPlaneGenerator(nn.Module):
         if self.decoder.activation == "sigmoid":
             feature_image = feature_image * 2 - 1
         out = {"image_depth": depth_image, "weights_sum": weights_image}
-        if self.kind != "eg3d":
+        if self.spec.panohead_modules:
             if background is None:
                 background = self.background(ws, noise_mode, generator)
             if background is not None:

@@ -2,10 +2,11 @@
 from __future__ import annotations
 
 from ..errors import UserError
+from ..gans.kinds import GAN_KINDS, KINDS
 from .base import Generator
 
-AVAILABLE = ("procedural", "eg3d", "panohead", "spherehead")
-GANS = ("eg3d", "panohead", "spherehead")
+AVAILABLE = ("procedural", *KINDS)
+GANS = KINDS
 
 
 def make_generator(name: str, checkpoint: str | None = None, options: dict | None = None) -> Generator:
@@ -24,12 +25,11 @@ def make_generator(name: str, checkpoint: str | None = None, options: dict | Non
             if key in options:
                 options[key] = tuple(options[key])
         return ProceduralHeads(ProceduralConfig(**options))
-    if name in GANS:
-        from ..gans.checkpoint import OFFICIAL_SOURCES
+    if name in GAN_KINDS:
         from .gan import GANConfig, GANHeads
 
         if not checkpoint:
-            raise UserError(f"--gan {name} needs --checkpoint PATH: {OFFICIAL_SOURCES[name]}")
+            raise UserError(f"--gan {name} needs --checkpoint PATH: {GAN_KINDS[name].source}")
         unknown = sorted(set(options) - set(GANConfig.__dataclass_fields__))
         if unknown:
             raise UserError(f"unknown {name} option(s): {', '.join(unknown)}")

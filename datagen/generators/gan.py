@@ -18,8 +18,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..cameras import (EG3D_FOCAL, EG3D_PIVOT, HEAD360_PIVOT, ViewSet, camera_position, conditioning_vector,
-                       intrinsics, look_at, rays)
+from ..cameras import (EG3D_FOCAL, ViewSet, camera_position, conditioning_vector, intrinsics, look_at,
+                       protocol_pivot, rays)
 from ..device import resolve_device
 from ..errors import UserError
 from ..gans.checkpoint import LoadedCheckpoint, read_checkpoint
@@ -84,8 +84,7 @@ def chunk_plan(G, budget_bytes: float, fp16: bool) -> ChunkPlan:
     """
     rk = G.rendering_kwargs
     samples = rk["depth_resolution"] + rk["depth_resolution_importance"]
-    planes = 6 if G.kind == "spherehead" else 3
-    per_sample = 4 * (planes * 32 + 32 + 2 * 64 + 3 * 33)
+    per_sample = 4 * (G.spec.sampled_planes * 32 + 32 + 2 * 64 + 3 * 33)
     rays = max(1, int(budget_bytes // (per_sample * samples * CHUNK_RAYS_QUANTUM))) * CHUNK_RAYS_QUANTUM
     sr = G.superresolution
     (ch0, ch1), res1 = sr.variant.channels, sr.variant.output_resolution
@@ -116,7 +115,7 @@ class GANHeads(Generator):
         self.G.precision = config.precision
         self.fp16 = self.G.fp16(torch.empty(0, device=self.device))
         self.plan = chunk_plan(self.G, self.budget_bytes(), self.fp16)
-        self.pivot = EG3D_PIVOT if kind == "eg3d" else HEAD360_PIVOT
+        self.pivot = protocol_pivot(self.G.spec.protocol)
 
     def budget_bytes(self) -> float:
         if self.config.memory_budget_mb:
@@ -153,7 +152,7 @@ class GANHeads(Generator):
         ws = self.G.mapping(torch.from_numpy(z)[None].to(self.device), c.to(self.device),
                             cfg.truncation_psi, cfg.truncation_cutoff)
         planes = self.G.planes(ws, cfg.noise_mode, gen)
-        background = self.G.background(ws, cfg.noise_mode, gen) if self.name != "eg3d" else None
+        background = self.G.background(ws, cfg.noise_mode, gen)
         arrays = {"z": z, "w": ws[0, 0].cpu().numpy()}
         if cfg.save_planes:
             arrays["planes"] = self._planes_fp16(planes, cfg.save_planes)
