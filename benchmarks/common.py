@@ -146,9 +146,10 @@ def stage_clock(stages: dict):
 
 
 def run_child(script: Path, config: dict, env: dict | None = None) -> dict:
-    """Run ``script --child JSON`` in a fresh process (a clean peak-memory reading); its last stdout line is JSON."""
-    command = [sys.executable, str(script), "--child", json.dumps(config)]
-    done = subprocess.run(command, capture_output=True, text=True, env={**os.environ, **(env or {})})
+    """Run the benchmark ``script`` with ``--child JSON`` in a fresh process (a clean peak-memory reading);
+    its last stdout line is JSON."""
+    command = [sys.executable, "-m", module_name(script), "--child", json.dumps(config)]
+    done = subprocess.run(command, capture_output=True, text=True, env={**os.environ, **(env or {})}, cwd=REPO)
     if done.returncode != 0:
         raise RuntimeError(f"{script.name} child {config} failed:\n{done.stderr[-2000:]}")
     return json.loads(done.stdout.strip().splitlines()[-1])
@@ -189,11 +190,14 @@ def benchmark_parser(doc: str, quick_help: str, report_only_help: str) -> argpar
     return parser
 
 
+def module_name(script: Path) -> str:
+    """``benchmarks.NAME`` of a benchmark script's path."""
+    return f"{HERE.name}.{Path(script).stem}"
+
+
 def command_line(script: Path, argv: list[str] | None) -> str:
-    """The command that reproduces this run, with the script's path from the repository root."""
-    script = script.resolve()
-    shown = script.relative_to(REPO) if script.is_relative_to(REPO) else script
-    return " ".join(["python", str(shown), *(argv if argv is not None else sys.argv[1:])])
+    """The command that reproduces this run, from the repository root."""
+    return " ".join(["python", "-m", module_name(script), *(argv if argv is not None else sys.argv[1:])])
 
 
 def report_name(name: str, quick: bool) -> str:

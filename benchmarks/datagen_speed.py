@@ -3,9 +3,9 @@
 Writes ``benchmarks/reports/datagen_speed.{json,md}`` and PNG plots beside them (plots need
 matplotlib; without it they are skipped with a note). The markdown is regenerated from the JSON.
 
-    python benchmarks/datagen_speed.py            # default mode, about 10 minutes on 2 cores
-    python benchmarks/datagen_speed.py --quick    # a smoke run, under 2 minutes
-    python benchmarks/datagen_speed.py --report-only   # rewrite the markdown and plots from the JSON
+    python -m benchmarks.datagen_speed            # default mode, about 10 minutes on 2 cores
+    python -m benchmarks.datagen_speed --quick    # a smoke run, under 2 minutes
+    python -m benchmarks.datagen_speed --report-only   # rewrite the markdown and plots from the JSON
 
 Sections: (1) one 32-view 128 px subject, split into bake and render; (2) scaling with image
 resolution; (3) the full ``run_sample`` pipeline with 1 and 2 workers; (4) render time against
@@ -28,14 +28,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from benchmarks.common import (bullets, fmt, load_note, measurement_header, median, psnr_db,  # noqa: E402
+from benchmarks.common import (bullets, fmt, load_note, measurement_header, median, psnr_db,
                                pyplot, report_main, report_name, reproduce, run_sections, stage_clock, table)
-from datagen.cameras import sample_views  # noqa: E402
-from datagen.generators import procedural  # noqa: E402
-from datagen.generators.base import STREAM_CAMERAS, STREAM_LATENT, subject_rng  # noqa: E402
-from datagen.generators.procedural import ProceduralConfig, ProceduralHeads, sample_params  # noqa: E402
-from datagen.pipeline import JobSpec, run_sample, software_info  # noqa: E402
+from datagen.cameras import sample_views
+from datagen.generators.base import STREAM_CAMERAS, STREAM_LATENT, subject_rng
+from datagen.generators.procedural import ProceduralConfig, ProceduralHeads, bake, generator, sample_params
+from datagen.pipeline import JobSpec, run_sample, software_info
 
 NAME = "datagen_speed"
 SEED = 0
@@ -49,8 +47,9 @@ DEFAULT_SAMPLES = (ProceduralConfig.samples, ProceduralConfig.samples_importance
 FG_ALPHA = 1e-3               # a pixel is foreground when either image covers it this much
 DEPTH_ALPHA = 0.5             # depth is compared where both images are at least this opaque
 WARMUP_INDEX = 10_000         # a subject outside every measured set
-# The procedural module's stages, timed by wrapping the module functions (see common.stage_clock).
-STAGES = {name: (procedural, name) for name in ("head_field", "sphere_trace", "render_rays_chunked")}
+# The procedural generator's stages, timed by wrapping the functions where they are called (see common.stage_clock).
+STAGES = {"head_field": (bake, "head_field"), "sphere_trace": (generator, "sphere_trace"),
+          "render_rays_chunked": (generator, "render_rays_chunked")}
 
 
 @dataclass(frozen=True)

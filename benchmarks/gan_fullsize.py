@@ -2,9 +2,9 @@
 
 Writes ``benchmarks/reports/gan_fullsize.{json,md}`` (``gan_fullsize_quick.*`` with ``--quick``).
 
-    python benchmarks/gan_fullsize.py                # one 32-view 512 px subject per model (~15 min, 2 cores)
-    python benchmarks/gan_fullsize.py --quick        # 2 views per model (~3 min)
-    python benchmarks/gan_fullsize.py --report-only  # rewrite the markdown from the JSON
+    python -m benchmarks.gan_fullsize                # one 32-view 512 px subject per model (~15 min, 2 cores)
+    python -m benchmarks.gan_fullsize --quick        # 2 views per model (~3 min)
+    python -m benchmarks.gan_fullsize --report-only  # rewrite the markdown from the JSON
 
 Each generator is built from the released models' constructor kwargs (EG3D ``ffhq512-128`` /
 ``ffhqrebalanced512-128`` as ``train.py --cfg=ffhq`` builds them for a 512 dataset; PanoHead's
@@ -19,24 +19,22 @@ grid sampling, activations and compositing are not counted, so the figure is a l
 from __future__ import annotations
 
 import functools
-import sys
 import time
 from pathlib import Path
 
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from benchmarks.common import (bullets, fmt, load_note, measurement_header, report_main, reproduce,  # noqa: E402
+from benchmarks.common import (bullets, fmt, load_note, measurement_header, report_main, reproduce,
                                run_sections, stage_clock, table)
-from datagen.cameras import sample_views  # noqa: E402
-from datagen.generators import gan as gan_module  # noqa: E402
-from datagen.generators.base import STREAM_CAMERAS, subject_rng  # noqa: E402
-from datagen.generators.gan import GANConfig, GANHeads  # noqa: E402
-from datagen.gans.checkpoint import LoadedCheckpoint  # noqa: E402
-from datagen.gans.kinds import GAN_KINDS, KINDS  # noqa: E402
-from datagen.gans.triplane import TriPlaneGenerator  # noqa: E402
-from datagen.shards import encode_subject  # noqa: E402
+from datagen.cameras import sample_views
+from datagen.generators import gan as gan_module
+from datagen.generators.base import STREAM_CAMERAS, subject_rng
+from datagen.generators.gan import GANConfig, GANHeads
+from datagen.gans.checkpoint import LoadedCheckpoint
+from datagen.gans.kinds import GAN_KINDS, KINDS
+from datagen.gans.triplane import TriPlaneGenerator
+from datagen.shards import encode_subject
 
 NAME = "gan_fullsize"
 MODELS = KINDS

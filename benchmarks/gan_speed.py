@@ -4,9 +4,9 @@ Writes ``benchmarks/reports/gan_speed.{json,md}`` (``gan_speed_quick.*`` with ``
 PNG plot beside them (the plot needs matplotlib; without it it is skipped with a note). The
 markdown is regenerated from the JSON.
 
-    python benchmarks/gan_speed.py                # default mode, about 4 minutes on 2 idle cores
-    python benchmarks/gan_speed.py --quick        # a smoke run (8 views per subject), about 1 minute
-    python benchmarks/gan_speed.py --report-only  # rewrite the markdown and plot from the JSON
+    python -m benchmarks.gan_speed                # default mode, about 4 minutes on 2 idle cores
+    python -m benchmarks.gan_speed --quick        # a smoke run (8 views per subject), about 1 minute
+    python -m benchmarks.gan_speed --report-only  # rewrite the markdown and plot from the JSON
 
 The checkpoints are the tiny random-init generators of the shared fixtures
 (``$PANOLAM_SHARED/fixtures/gan/<model>/<model>-tiny.pkl``, default ``../shared`` beside the
@@ -36,13 +36,12 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from benchmarks.common import (REPO, bullets, fmt, load_note, measurement_header, median, psnr_db, pyplot,  # noqa: E402
+from benchmarks.common import (REPO, bullets, fmt, load_note, measurement_header, median, psnr_db, pyplot,
                                report_main, report_name, reproduce, run_sections, table)
-from datagen.cameras import sample_views  # noqa: E402
-from datagen.generators import GANS, make_generator  # noqa: E402
-from datagen.generators.base import STREAM_CAMERAS, subject_rng  # noqa: E402
-from datagen.generators.gan import ChunkPlan  # noqa: E402
+from datagen.cameras import sample_views
+from datagen.generators import GANS, make_generator
+from datagen.generators.base import STREAM_CAMERAS, subject_rng
+from datagen.generators.gan import ChunkPlan
 
 NAME = "gan_speed"
 SHARED = Path(os.environ.get("PANOLAM_SHARED", REPO.parent / "shared"))

@@ -2,9 +2,9 @@
 
 Writes ``benchmarks/reports/gpu_check.{json,md}`` (``gpu_check_dry_run.*`` with ``--dry-run``).
 
-    python benchmarks/gpu_check.py              # on a CUDA machine (sized for under 8 min on one H100/H200)
-    python benchmarks/gpu_check.py --dry-run    # the same sections at toy sizes on the CPU (~1 min, 2 cores)
-    python benchmarks/gpu_check.py --sections gan_precision,gan_throughput   # some sections only
+    python -m benchmarks.gpu_check              # on a CUDA machine (sized for under 8 min on one H100/H200)
+    python -m benchmarks.gpu_check --dry-run    # the same sections at toy sizes on the CPU (~1 min, 2 cores)
+    python -m benchmarks.gpu_check --sections gan_precision,gan_throughput   # some sections only
 
 Sections (each one is timed; a failure is recorded with its error and the next section runs):
 
@@ -42,15 +42,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from benchmarks.common import (REPO, REPORTS, bullets, command_line, device_sync, fmt, machine_info,  # noqa: E402
+from benchmarks.common import (REPO, REPORTS, bullets, command_line, device_sync, fmt, machine_info,
                                memory_peak, memory_start, psnr_db, reproduce, table, write_report)
-from benchmarks.gan_fullsize import PROTOCOL, build  # noqa: E402
-from datagen.cameras import sample_views  # noqa: E402
-from datagen.generators.base import STREAM_CAMERAS, subject_rng  # noqa: E402
-from datagen.generators.gan import GANConfig, GANHeads  # noqa: E402
-from datagen.gans.checkpoint import read_checkpoint  # noqa: E402
-from datagen.gans.kinds import KINDS  # noqa: E402
+from benchmarks.gan_fullsize import PROTOCOL, build
+from datagen.cameras import sample_views
+from datagen.generators.base import STREAM_CAMERAS, subject_rng
+from datagen.generators.gan import GANConfig, GANHeads
+from datagen.gans.checkpoint import read_checkpoint
+from datagen.gans.kinds import KINDS
 
 NAME = "gpu_check"
 SHARED = Path(os.environ.get("PANOLAM_SHARED", REPO.parent / "shared"))

@@ -18,7 +18,7 @@ Datasets: a few procedural subjects are rendered per size and their bytes repeat
 subject ids (1,000 subjects at 128 px; fewer at 512 px, whose subjects are 18 MB each); the
 window's costs do not depend on which head is shown. They are kept in ``--work`` for later runs.
 
-    python benchmarks/gui_latency.py [--quick] [--work DIR] [--report-only]
+    python -m benchmarks.gui_latency [--quick] [--work DIR] [--report-only]
 
 Writes benchmarks/reports/gui_latency.md and .json (gui_latency_quick.* with --quick), and a
 screenshot of each mode.
@@ -40,13 +40,12 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import (REPORTS, benchmark_parser, bullets, command_line, load_average,  # noqa: E402
+from benchmarks.common import (REPORTS, benchmark_parser, bullets, command_line, load_average,
                                machine_info, reproduce, table, write_report)
-from datagen.pipeline import JobSpec, make_index, run_sample, software_info  # noqa: E402
-from datagen.files import atomic_write  # noqa: E402
-from datagen.shards import INDEX_NAME, ShardWriter, dumps, iter_tar_samples, read_index, subject_id  # noqa: E402
+from datagen.pipeline import JobSpec, make_index, run_sample, software_info
+from datagen.files import atomic_write
+from datagen.shards import INDEX_NAME, ShardWriter, dumps, iter_tar_samples, read_index, subject_id
 
 SCREEN = (1920, 1080)
 GOALS_MS = {"next": 150, "verdict": 150, "triage_page": 300, "view3d_on": 500}

@@ -1,7 +1,7 @@
 """Forward time and peak memory of the PanoLAM network; coarse-to-fine against direct dense regression.
 
-    python benchmarks/model_speed.py            # about 10 minutes on 2 cores
-    python benchmarks/model_speed.py --quick    # tiny rows only
+    python -m benchmarks.model_speed            # about 10 minutes on 2 cores
+    python -m benchmarks.model_speed --quick    # tiny rows only
 
 Writes ``benchmarks/reports/model_speed.{json,md,png}``. Each row and pass runs in a fresh process:
 one warm-up, then ``repeats`` timed passes on one 512 x 512 photo (scikit-image's astronaut
@@ -22,16 +22,14 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 import time
 from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from benchmarks.common import (REPORTS, device_sync, machine_info, memory_peak, memory_start, pyplot,  # noqa: E402
+from benchmarks.common import (REPORTS, device_sync, machine_info, memory_peak, memory_start, pyplot,
                                run_child, write_report)
-from panolam.encoder import DinoV2ShapedStub  # noqa: E402
+from panolam.encoder import DinoV2ShapedStub
 
 NAME = "model_speed"
 PAPER = "paper (A100): reconstruction 0.11 s; coarse-to-fine ~6x faster and ~2.4x less memory than direct"
@@ -133,7 +131,7 @@ def measure(quick: bool, device: str) -> dict:
         rows.append(row)
     device_name = torch.cuda.get_device_name() if device.startswith("cuda") else "CPU"
     return {"mode": "quick" if quick else "full", "machine": machine_info(), "rows": rows, "device": device_name,
-            "command": "python benchmarks/model_speed.py" + (" --quick" if quick else "") +
+            "command": "python -m benchmarks.model_speed" + (" --quick" if quick else "") +
                        (f" --device {device}" if device != "cpu" else "")}
 
 

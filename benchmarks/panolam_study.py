@@ -1,10 +1,10 @@
 """PanoLAM on procedural heads, on a CPU: does it learn, does the paper's ablation ordering hold, and
 what do speed and accuracy trade?
 
-    python benchmarks/panolam_study.py                          # everything, one process (hours on 2 cores)
-    python benchmarks/panolam_study.py --phase train --threads 1 --variants main quarter_subjects &
-    python benchmarks/panolam_study.py --phase train --threads 1 --variants no_c2f tiny single_point rays_k2
-    python benchmarks/panolam_study.py --phase baselines final speed report   # then, on a quiet machine
+    python -m benchmarks.panolam_study                          # everything, one process (hours on 2 cores)
+    python -m benchmarks.panolam_study --phase train --threads 1 --variants main quarter_subjects &
+    python -m benchmarks.panolam_study --phase train --threads 1 --variants no_c2f tiny single_point rays_k2
+    python -m benchmarks.panolam_study --phase baselines final speed report   # then, on a quiet machine
 
 Phases (each skips what is already on disk, so an interrupted study resumes; training processes can
 run side by side, each variant writing only under ``runs/<name>/``):
@@ -36,17 +36,16 @@ from types import SimpleNamespace
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from benchmarks.common import (HERE, REPORTS, machine_info, peak_rss_since_reset_mb, pyplot,  # noqa: E402
+from benchmarks.common import (HERE, REPORTS, machine_info, peak_rss_since_reset_mb, pyplot,
                                reset_peak_rss, run_child, table, write_report)
-from datagen.manifests import read_manifest  # noqa: E402
-from panolam.data import accepted_subjects, load_views  # noqa: E402
-from panolam.evaluate import evaluate  # noqa: E402
-from panolam.gaussians import Gaussians  # noqa: E402
-from panolam.model import PanoLAM  # noqa: E402
-from panolam.checkpoints import load_model, read_checkpoint  # noqa: E402
-from panolam.config import TrainConfig, preset  # noqa: E402
-from panolam.train import train  # noqa: E402
+from datagen.manifests import read_manifest
+from panolam.data import accepted_subjects, load_views
+from panolam.evaluate import evaluate
+from panolam.gaussians import Gaussians
+from panolam.model import PanoLAM
+from panolam.checkpoints import load_model, read_checkpoint
+from panolam.config import TrainConfig, preset
+from panolam.train import train
 
 OUT = HERE / "out" / "study"
 MAIN = "main"  # the long `tiny` run: learning curve, speed against error
@@ -281,7 +280,7 @@ def _setup(results: dict) -> list[str]:
             "in for LPIPS (no LPIPS weights here); procedural data has no GAN planes, so lambda_6 has nothing to "
             "supervise. Training processes ran two at a time, one thread each, so their seconds per step are "
             "comparable with each other, not with a quiet 2-thread run.", "", "```", *commands,
-            "python benchmarks/panolam_study.py --phase baselines final speed report", "```"]
+            "python -m benchmarks.panolam_study --phase baselines final speed report", "```"]
 
 
 def training_markdown(results: dict, plot_note: str) -> str:
@@ -478,7 +477,7 @@ def main(argv=None) -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
-    args.command = "python benchmarks/panolam_study.py " + " ".join(argv or sys.argv[1:])
+    args.command = "python -m benchmarks.panolam_study " + " ".join(argv or sys.argv[1:])
     args.recorded = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
     data, manifest = data_phase(args) if "data" in args.phase else (args.out / "heads", args.out / "heads-v1.json")
     if "baselines" in args.phase:

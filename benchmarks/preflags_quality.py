@@ -18,10 +18,10 @@ ones), flags on clean subjects; and scoring speed. The scorer never reads ``trut
 benchmark does, to count hits. A detector's false positives are subjects it flags that lack its
 defect (clean or another defect).
 
-    python benchmarks/preflags_quality.py --keep /tmp/pfq     # about 25 min on 2 cores, datasets kept
-    python benchmarks/preflags_quality.py --keep /tmp/pfq     # again: reuses the datasets
-    python benchmarks/preflags_quality.py --report-only       # rewrite the markdown from the JSON
-    python benchmarks/preflags_quality.py --gallery-only      # the defect gallery alone
+    python -m benchmarks.preflags_quality --keep /tmp/pfq     # about 25 min on 2 cores, datasets kept
+    python -m benchmarks.preflags_quality --keep /tmp/pfq     # again: reuses the datasets
+    python -m benchmarks.preflags_quality --report-only       # rewrite the markdown from the JSON
+    python -m benchmarks.preflags_quality --gallery-only      # the defect gallery alone
 
 Writes ``benchmarks/reports/preflags_quality.{json,md}`` and the gallery ``preflags_gallery.png``
 (every injected class at a low and a high severity, seen from the front, behind-left and behind).
@@ -41,11 +41,11 @@ HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 sys.path.insert(0, str(REPO))
 
-from benchmarks.common import equator_views, load_average, machine_info  # noqa: E402
-from datagen.generators.procedural import DEFECT_TYPES, ProceduralConfig  # noqa: E402
-from labeling_tool.preflags import pipeline  # noqa: E402
-from labeling_tool.preflags.learn import auc, learn_ranking  # noqa: E402
-from labeling_tool.preflags.registry import DETECTOR_NAMES  # noqa: E402
+from benchmarks.common import equator_views, load_average, machine_info
+from datagen.generators.procedural import DEFECT_TYPES, ProceduralConfig
+from labeling_tool.preflags import pipeline
+from labeling_tool.preflags.learn import auc, learn_ranking
+from labeling_tool.preflags.registry import DETECTOR_NAMES
 
 MATCH = {d: ("holes" if d == "hole" else d) for d in DEFECT_TYPES}  # injected class -> its detector
 REPORT = HERE / "reports" / "preflags_quality"
@@ -402,7 +402,7 @@ def main(argv=None) -> int:
     base = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="preflags-quality-"))
     default_rate = ProceduralConfig().defect_rate
     data = {"when": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "machine": machine_info(),
-            "command": "python benchmarks/preflags_quality.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+            "command": "python -m benchmarks.preflags_quality " + " ".join(argv if argv is not None else sys.argv[1:]),
             "args": dict(vars(args), default_rate=default_rate), "generation_seconds": {}, "datasets": {}}
     load0 = load_average()
 

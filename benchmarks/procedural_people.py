@@ -9,10 +9,10 @@ Writes ``benchmarks/reports/procedural_people.{json,md}``, a contact sheet of 32
 and back (``procedural_people.png``), and the distribution of the identity distances per generator
 (``procedural_people_distances.png``, with matplotlib).
 
-    python benchmarks/procedural_people.py            # 40 subjects of seeds 0 and 11 for identity, 4 timed, ~8 min
-    python benchmarks/procedural_people.py --quick    # 16 and 1
-    python benchmarks/procedural_people.py --report-only
-    python benchmarks/procedural_people.py --baseline <commit> [<commit> ...]
+    python -m benchmarks.procedural_people            # 40 subjects of seeds 0 and 11 for identity, 4 timed, ~8 min
+    python -m benchmarks.procedural_people --quick    # 16 and 1
+    python -m benchmarks.procedural_people --report-only
+    python -m benchmarks.procedural_people --baseline <commit> [<commit> ...]
 
 Sections:
 1. Attribute coverage: ``sample_params`` of 1,000 seeds (no rendering): the share of each hair style,
@@ -32,6 +32,7 @@ import importlib.util
 import itertools
 import json
 import subprocess
+import tempfile
 import sys
 import time
 from collections import Counter
@@ -40,11 +41,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from benchmarks.common import equator_views, load_average, machine_info, pyplot  # noqa: E402
-from datagen.cameras import sample_views  # noqa: E402
-from datagen.generators import procedural  # noqa: E402
-from datagen.generators.base import STREAM_CAMERAS, STREAM_LATENT, subject_rng  # noqa: E402
+from benchmarks.common import equator_views, load_average, machine_info, pyplot
+from datagen.cameras import sample_views
+from datagen.generators import procedural
+from datagen.generators.base import STREAM_CAMERAS, STREAM_LATENT, subject_rng
 
 REPORTS = Path(__file__).resolve().parent / "reports"
 NAME = "procedural_people"
@@ -61,15 +61,33 @@ ATTRIBUTES = ("hair_style", "hair_colour", "skin_tone", "sex", "age_bracket", "f
               "makeup", "neckline", "iris")
 
 
-def generator_at(commit: str):
-    """``datagen/generators/procedural.py`` as of ``commit``, imported beside today's modules."""
-    src = subprocess.run(["git", "-C", str(ROOT), "show", f"{commit}:datagen/generators/procedural.py"],
-                         check=True, capture_output=True, text=True).stdout
-    spec = importlib.util.spec_from_loader(f"datagen.generators.procedural_{commit}", loader=None)
+def _git(*args) -> str:
+    return subprocess.run(["git", "-C", str(ROOT), *args], check=True, capture_output=True, text=True).stdout
+
+
+def generator_at(commit: str, scratch: Path):
+    """The procedural generator as of ``commit`` (a module, or since the split a package under
+    ``datagen/generators/procedural/``), imported beside today's modules as
+    ``datagen.generators.procedural_<commit>``; a package's files are written under ``scratch``."""
+    name = f"datagen.generators.procedural_{commit}"
+    files = _git("ls-tree", "--name-only", commit, "datagen/generators/procedural/").split()
+    if files:
+        folder = scratch / f"procedural_{commit}"
+        folder.mkdir(parents=True, exist_ok=True)
+        for path in files:
+            (folder / Path(path).name).write_text(_git("show", f"{commit}:{path}"))
+        spec = importlib.util.spec_from_file_location(name, folder / "__init__.py",
+                                                      submodule_search_locations=[str(folder)])
+    else:
+        spec = importlib.util.spec_from_loader(name, loader=None)
     module = importlib.util.module_from_spec(spec)
-    module.__package__ = "datagen.generators"
-    sys.modules[spec.name] = module  # dataclasses look their module up there
-    exec(compile(src, f"{commit}:datagen/generators/procedural.py", "exec"), module.__dict__)
+    module.__package__ = name if files else "datagen.generators"
+    sys.modules[name] = module  # dataclasses and relative imports look their module up there
+    if files:
+        spec.loader.exec_module(module)
+    else:
+        path = "datagen/generators/procedural.py"
+        exec(compile(_git("show", f"{commit}:{path}"), f"{commit}:{path}", "exec"), module.__dict__)
     return module
 
 
@@ -90,7 +108,7 @@ class Faces:
     def __init__(self):
         import dlib
 
-        from panolam.faces import _model_file
+        from datagen.faces import model_file as _model_file
         self.detector = dlib.get_frontal_face_detector()
         self.shape = dlib.shape_predictor(_model_file("shape_predictor_5_face_landmarks.dat"))
         self.net = dlib.face_recognition_model_v1(_model_file("dlib_face_recognition_resnet_model_v1.dat"))
@@ -259,8 +277,9 @@ def main(argv=None):
     else:
         torch.set_num_threads(args.threads)
         n_id, n_speed = (16, 1) if args.quick else (40, 4)
-        generators = {f"old ({commit})": generator_at(commit) for commit in args.baseline} | {"new": procedural}
-        res = {"command": "python benchmarks/procedural_people.py" + (" --quick" if args.quick else ""),
+        scratch = Path(tempfile.mkdtemp(prefix="procedural_baselines_"))  # the baselines' packages, kept while imported
+        generators = {f"old ({commit})": generator_at(commit, scratch) for commit in args.baseline} | {"new": procedural}
+        res = {"command": "python -m benchmarks.procedural_people" + (" --quick" if args.quick else ""),
                "baselines": args.baseline,
                "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "machine": machine_info(),
                "load_before": load_average(), "threads": args.threads}

@@ -4,10 +4,10 @@ Writes ``benchmarks/reports/rasterizer_speed.{json,md}`` (``rasterizer_speed_qui
 ``--quick``) and, when matplotlib is importable, a PNG plot beside them (otherwise the markdown
 says it was skipped).
 
-    python benchmarks/rasterizer_speed.py            # full run, a few minutes on 2 cores
-    python benchmarks/rasterizer_speed.py --quick    # smoke run, under 2 minutes
-    python benchmarks/rasterizer_speed.py --report-only [--quick]   # rewrite markdown and plot from the JSON
-    python benchmarks/rasterizer_speed.py --constants [--report-only]   # the constants' PSNR, under a minute
+    python -m benchmarks.rasterizer_speed            # full run, a few minutes on 2 cores
+    python -m benchmarks.rasterizer_speed --quick    # smoke run, under 2 minutes
+    python -m benchmarks.rasterizer_speed --report-only [--quick]   # rewrite markdown and plot from the JSON
+    python -m benchmarks.rasterizer_speed --constants [--report-only]   # the constants' PSNR, under a minute
 
 Scenes look like a head avatar: Gaussians on a noisy ellipsoid (semi-axes 0.20, 0.25, 0.22) around
 the origin, scales log-uniform in [0.003, 0.01], random rotations, opacities uniform in [0.2, 1],
@@ -34,19 +34,17 @@ import json
 import math
 import os
 import statistics
-import sys
 import time
 from datetime import datetime, timezone
 from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-import panolam.rasterizer as rasterizer  # noqa: E402
-from benchmarks.common import (REPORTS, benchmark_parser, command_line, load_or_measure, machine_info,  # noqa: E402
+import panolam.rasterizer as rasterizer
+from benchmarks.common import (REPORTS, benchmark_parser, command_line, load_or_measure, machine_info,
                                peak_rss_mb, psnr_db, pyplot, report_name, reproduce, rss_mb, run_child)
-from datagen.cameras import camera_position, fov_to_focal, intrinsics, look_at, pixel_intrinsics  # noqa: E402
-from panolam.rasterizer import (ALPHA_MAX, ALPHA_MIN, BLOCK, T_MIN, bin_gaussians, project, rasterize,  # noqa: E402
+from datagen.cameras import camera_position, fov_to_focal, intrinsics, look_at, pixel_intrinsics
+from panolam.rasterizer import (ALPHA_MAX, ALPHA_MIN, BLOCK, T_MIN, bin_gaussians, project, rasterize,
                                 tile_ranges)
 
 NAME = "rasterizer_speed"

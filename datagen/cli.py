@@ -91,18 +91,18 @@ def build_parser() -> OneLineParser:
     s.add_argument("--quiet", action="store_true", help="no progress bar")
 
     v = sub.add_parser("verify", help="check checksums, decoding, counts and metadata of a dataset")
-    v.add_argument("dataset")
-    v.add_argument("--quiet", action="store_true")
+    v.add_argument("dataset", help="dataset folder (datagen sample --out)")
+    v.add_argument("--quiet", action="store_true", help="no progress bar")
 
     pv = sub.add_parser("preview", help="write a contact sheet PNG of one subject's views")
-    pv.add_argument("dataset")
+    pv.add_argument("dataset", help="dataset folder (datagen sample --out)")
     pv.add_argument("--subject", required=True, help="subject number (e.g. 3) or id (subj00000003)")
     pv.add_argument("--out", required=True, help="PNG to write")
-    pv.add_argument("--columns", type=int, default=8)
+    pv.add_argument("--columns", type=int, default=8, help="views per row")
     pv.add_argument("--mask-depth", action="store_true", help="show mask and depth beside each view")
 
     i = sub.add_parser("info", help="summarize a dataset")
-    i.add_argument("dataset")
+    i.add_argument("dataset", help="dataset folder (datagen sample --out)")
     i.add_argument("--json", action="store_true", help="print JSON")
     return p
 
@@ -162,6 +162,11 @@ def _sample(args) -> int:
     summary = run_sample(spec, workers=args.workers, backend=args.backend, ray_address=args.ray_address,
                          gpus_per_task=args.gpus_per_task, shard_index=args.shard_index, num_shards=args.num_shards,
                          resume=args.resume, progress=not args.quiet)
+    if not summary["shards_written"] and summary["shards_skipped"]:
+        part = "this job's " if args.num_shards > 1 else ""
+        print(f"{args.out}: complete ({part}{summary['shards_skipped']} of {plural(spec.num_shard_files, 'shard')}, "
+              f"{plural(summary['subjects'], 'subject')}); nothing to do")
+        return 0
     rate = summary["images"] / summary["seconds"] if summary["seconds"] > 0 else 0.0
     print(f"wrote {summary['shards_written']} shard(s), skipped {summary['shards_skipped']} complete; "
           f"{summary['images']} images in {summary['seconds']:.1f} s ({rate:.1f} img/s) -> {args.out}")
@@ -196,9 +201,36 @@ def _info(args) -> int:
     if args.json:
         print(json.dumps(info, indent=1, sort_keys=True))
     else:
-        for k, val in info.items():
-            print(f"{k:>18}: {val}")
+        print("\n".join(readable(dict(("size", byte_size(v)) if k == "bytes" else (k, v) for k, v in info.items()))))
     return 0
+
+
+NOT_COUNTS = ("seed", "resolution")  # whole numbers shown without thousands separators
+
+
+def byte_size(n: int) -> str:
+    """A byte count for people: '25.8 MiB'."""
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if n < 1024 or unit == "GiB":
+            return f"{n} B" if unit == "B" else f"{n:,.1f} {unit}"
+        n /= 1024
+
+
+def plural(n: int, word: str) -> str:
+    """'1 face', '2,000 faces'."""
+    return f"{n:,} {word}" + ("" if n == 1 else "s")
+
+
+def readable(info: dict, indent: str = "") -> list[str]:
+    """``key: value`` lines, nested dicts indented under their key, counts with thousands separators."""
+    lines = []
+    for k, v in info.items():
+        if isinstance(v, dict):
+            lines += [f"{indent}{k}:"] + readable(v, indent + "  ")
+        else:
+            shown = f"{v:,}" if isinstance(v, int) and not isinstance(v, bool) and k not in NOT_COUNTS else v
+            lines.append(f"{indent}{k}: {shown}")
+    return lines
 
 
 COMMANDS = {"sample": _sample, "verify": _verify, "preview": _preview, "info": _info}

@@ -424,7 +424,8 @@ def run_sample(spec: JobSpec, *, workers: int | str = 1, backend: str = "local",
     one per CPU core up to this job's shard count); the local backend runs one process per worker,
     Ray gives each task the CPU cores divided by the workers. ``gpus_per_task``: Ray only, the share
     of a GPU each task asks for when rendering on CUDA (default 1).
-    Returns a summary: shards written and skipped, images, seconds.
+    A job whose shards are all complete writes nothing, with or without ``resume``.
+    Returns a summary: shards written and skipped, subjects in this job's shards, images, seconds.
     """
     validate(spec)
     if num_shards < 1 or not 0 <= shard_index < num_shards:
@@ -441,10 +442,13 @@ def run_sample(spec: JobSpec, *, workers: int | str = 1, backend: str = "local",
     index = make_index(spec, generator.describe())
     prepare_output(spec, index)
     done = [s for s in mine if is_complete(spec.out, s)]
-    if done and not resume:
+    if done and not resume and len(done) < len(mine):
         raise UserError(f"{spec.out} already has {len(done)} complete shard(s) of this job; "
                         "pass --resume to continue, or choose another --out")
     todo = [s for s in mine if s not in done]
+    subjects = sum(len(spec.shard_subjects(s)) for s in mine)
+    if done and not todo:  # the same job asked again
+        return {"shards_written": 0, "shards_skipped": len(done), "subjects": subjects, "images": 0, "seconds": 0.0}
     images = sum(len(spec.shard_subjects(s)) for s in todo) * spec.views
     bar = _progress_bar(images, progress)
     start = time.perf_counter()
@@ -460,7 +464,7 @@ def run_sample(spec: JobSpec, *, workers: int | str = 1, backend: str = "local",
         raise
     finally:
         bar.close()
-    return {"shards_written": len(todo), "shards_skipped": len(done), "images": images,
+    return {"shards_written": len(todo), "shards_skipped": len(done), "subjects": subjects, "images": images,
             "seconds": time.perf_counter() - start}
 
 

@@ -28,7 +28,7 @@ def build_parser() -> OneLineParser:
     sub = p.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
 
     a = sub.add_parser("auto", help="score every subject with automatic pre-flags (worst first)")
-    a.add_argument("dataset")
+    a.add_argument("dataset", help="dataset folder (datagen sample --out)")
     a.add_argument("--workers", type=int, default=1, help="processes that read and measure subjects")
     a.add_argument("--learn", metavar="LABELS",
                    help="re-rank the unreviewed subjects with a classifier fitted on the verdicts in this folder of "
@@ -36,12 +36,12 @@ def build_parser() -> OneLineParser:
     a.add_argument("--skip-incomplete", action="store_true",
                    help="score the complete shards and list the others (default: a missing or incomplete shard "
                         "is an error)")
-    a.add_argument("--top", type=int, default=10, help="print the N worst subjects")
-    a.add_argument("--quiet", action="store_true")
+    a.add_argument("--top", type=int, default=10, metavar="N", help="print the N worst subjects")
+    a.add_argument("--quiet", action="store_true", help="no progress bar")
 
     r = sub.add_parser("review", help="open the review window")
     r.add_argument("target", help="a dataset folder, or one shard-XXXXXX.tar in it")
-    r.add_argument("--reviewer", required=True)
+    r.add_argument("--reviewer", required=True, help="your name; your verdicts go to its own event log")
     r.add_argument("--labels", default="labels", help="folder of reviewers' event logs (default: ./labels)")
     r.add_argument("--queue", default="all", choices=("all", "worst", "suspicious"),
                    help="all (dataset order), worst (by pre-flag score), suspicious (flagged only)")
@@ -54,10 +54,11 @@ def build_parser() -> OneLineParser:
     r.add_argument("--screenshot", help="off-screen: save a screenshot after the keys")
 
     c = sub.add_parser("compile", help="merge reviewers' logs into a new, versioned manifest")
-    c.add_argument("dataset")
-    c.add_argument("--labels", default="labels")
+    c.add_argument("dataset", help="dataset folder (datagen sample --out)")
+    c.add_argument("--labels", default="labels", help="folder of reviewers' event logs (default: ./labels)")
     c.add_argument("--out", help="manifest file (default: manifests/<dataset>-v<N+1>.json)")
-    c.add_argument("--policy", default="any-bad", choices=("any-bad", "majority"))
+    c.add_argument("--policy", default="any-bad", choices=("any-bad", "majority"),
+                   help="a subject several reviewers judged: rejected if any says bad (default) or most do")
     c.add_argument("--unreviewed", default="accept", choices=UNREVIEWED,
                    help="subjects nobody reviewed: accept, reject, or reject-flagged (reject those the "
                         "pre-flags of 'label-tool auto' flag)")
@@ -69,15 +70,15 @@ def build_parser() -> OneLineParser:
                         "naming them)")
 
     s = sub.add_parser("stats", help="counts per reason and reviewer, agreement between reviewers")
-    s.add_argument("dataset")
-    s.add_argument("--labels", default="labels")
-    s.add_argument("--json", action="store_true")
+    s.add_argument("dataset", help="dataset folder (datagen sample --out)")
+    s.add_argument("--labels", default="labels", help="folder of reviewers' event logs (default: ./labels)")
+    s.add_argument("--json", action="store_true", help="print JSON")
     return p
 
 
 def build_queue(target: str, queue: str):
     """The review queue for a dataset or one of its shards, in dataset order or by pre-flag score."""
-    from .gui import QueueItem
+    from .review import QueueItem
 
     path = Path(target)
     shard_only = None
@@ -112,10 +113,12 @@ def build_queue(target: str, queue: str):
 def _auto(args) -> int:
     from datagen.preflags import write_preflags
 
-    from .preflags import score_dataset
+    from .preflags import FLAG_AT, score_dataset
 
     if args.workers < 1:
         raise UserError("--workers must be at least 1")
+    if args.top < 0:
+        raise UserError("--top must be at least 0")
     report = score_dataset(args.dataset, progress=not args.quiet, workers=args.workers,
                            skip_incomplete=args.skip_incomplete, labels=args.learn)
     path = write_preflags(args.dataset, report)
@@ -129,14 +132,21 @@ def _auto(args) -> int:
                else "unreviewed subjects re-ranked" if learned["used"] else learned["why"]))
     print(f"scored {len(report['subjects'])} subjects, {len(flagged)} flagged -> {path}"
           + (f"; SKIPPED {len(skipped)} incomplete shard(s): {', '.join(skipped[:5])}" if skipped else ""))
-    for r in report["subjects"][: args.top]:
+    shown = report["subjects"][: args.top]
+    if shown:
+        print(f"worst first; score = the subject's highest pre-flag score, 0 to 1 (flagged from {FLAG_AT:.2f}):")
+    for r in shown:
         why = "; ".join(r["detectors"][k]["why"] for k in r["flags"]) or "no flag"
         print(f"  {r['score']:.2f}  {r['subject']}  {why}")
+    if shown:
+        more = len(report["subjects"]) - len(shown)
+        print(f"{len(shown):,} of {len(report['subjects']):,} shown" +
+              (f" (--top N shows more; every score is in {path})" if more else ""))
     return 0
 
 
 def _review(args) -> int:
-    from .gui import ReviewApp
+    from .review import ReviewApp
 
     root, items = build_queue(args.target, args.queue)
     if args.columns < 1:
@@ -198,6 +208,10 @@ def _stats(args) -> int:
         return 0
     for problem in st["log_problems"]:
         print(f"problem: {problem}")
+    if not any(v["reviewed"] for v in st["reviewers"].values()):
+        print(f"no verdicts in {args.labels} yet; review with: label-tool review {args.dataset} --reviewer NAME "
+              f"--labels {args.labels}")
+        return 0
     print("per reviewer:")
     for r, v in st["reviewers"].items():
         print(f"  {r}: {v['reviewed']} reviewed ({v['good']} good, {v['bad']} bad), {v['events']} events, "

@@ -57,7 +57,7 @@ def _train_options(p):
     p.add_argument("--nproc", type=at_least(1), default=1,
                    help="data-parallel processes on this machine (with --device cuda, process i on GPU i)")
     p.add_argument("--device", default="cpu", help=DEVICE_HELP)
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def build_parser() -> OneLineParser:
@@ -68,7 +68,7 @@ def build_parser() -> OneLineParser:
                        description="Reconstruct a head from one photo. The model was trained on heads over white: "
                                    "an RGBA PNG whose background is transparent is composited on white, as training "
                                    "images are; any other photo keeps its background.")
-    p.add_argument("photo")
+    p.add_argument("photo", help="the photo: JPEG or PNG (RGBA: a transparent background is made white)")
     p.add_argument("--ckpt", required=True, help="run directory or checkpoint file")
     p.add_argument("--out", help="Gaussians as a standard 3DGS .ply")
     p.add_argument("--turntable", help="360-degree turntable: .mp4 (H.264) or animated .gif")
@@ -85,7 +85,7 @@ def build_parser() -> OneLineParser:
     p = sub.add_parser("eval", help="metrics on held-out subjects (front in; front/left/back/right out)")
     p.add_argument("--data", required=True, help="dataset directory")
     p.add_argument("--manifest", required=True, help="curated manifest")
-    p.add_argument("--split", default="test", choices=("test", "train"))
+    p.add_argument("--split", default="test", choices=("test", "train"), help="the manifest's subjects to evaluate")
     p.add_argument("--ckpt", required=True, help="run directory or checkpoint file")
     p.add_argument("--out", help="report directory (default: <ckpt>/eval-<split>)")
     p.add_argument("--limit", type=at_least(1), help="evaluate at most this many subjects")
@@ -153,7 +153,7 @@ def cmd_train(args) -> int:
 def cmd_infer(args) -> int:
     from . import infer
     from .checkpoints import load_model
-    from .faces import load_image, prepare_photo
+    from .photos import load_image, prepare_photo
     if not (args.out or args.turntable or args.views):
         raise UserError("nothing to write: give --out, --turntable and/or --views")
     _check_device(args)
@@ -190,17 +190,13 @@ def cmd_eval(args) -> int:
     lpips, notes = None, []
     subjects = accepted_subjects(manifest, args.split, args.data)[:args.limit]
 
-    def warn(line: str) -> None:
-        print(line, file=sys.stderr)
-        notes.append(line)
-
     seen = trained_on & {key for key, _ in subjects}
     if seen:
-        warn(f"WARNING: {len(seen)} of the evaluated subjects were training subjects of this run "
-             f"(is {args.manifest} the manifest it was trained with?)")
+        notes.append(f"WARNING: {len(seen)} of the evaluated subjects were training subjects of this run "
+                     f"(is {args.manifest} the manifest it was trained with?)")
     if len(subjects) < FEW_TEST_SUBJECTS:
-        warn(f"NOTE: {len(subjects)} {args.split} subject(s) only: these means are mostly noise, not a measure of "
-             f"the model (hold out at least {FEW_TEST_SUBJECTS} to compare runs)")
+        notes.append(f"NOTE: {len(subjects)} {args.split} subject(s) only: these means are mostly noise, not a "
+                     f"measure of the model (hold out at least {FEW_TEST_SUBJECTS} to compare runs)")
     if args.lpips_backbone or args.lpips_lin:
         from .metrics import load_lpips
         lpips = load_lpips(args.lpips_backbone, args.lpips_lin, net=args.lpips_net or TrainConfig.lpips_net)
@@ -209,7 +205,7 @@ def cmd_eval(args) -> int:
         notes.append("LPIPS: not computed (no --lpips-backbone/--lpips-lin weights given).")
     faces = None
     if not args.no_faces:
-        from . import faces as face_tools
+        from datagen import faces as face_tools
         try:
             face_tools.check_dlib()
             faces = face_tools

@@ -6,7 +6,7 @@ Per subject, the input is the view nearest yaw 0 deg and the targets are the vie
 dataset background: PSNR, SSIM (11x11 Gaussian window, sigma 1.5), LPIPS when its weights are
 given; CSIM on the front view where the target has a face (the render is read at the target's
 face box: both share the camera) and APD on the views where a face is found in both images, with
-dlib's models (:mod:`panolam.faces`; not ArcFace and not a 3DMM pose estimator, see there).
+dlib's models (:mod:`datagen.faces`; not ArcFace and not a 3DMM pose estimator, see there).
 Times: reconstruction (one forward pass) and render per view, medians.
 """
 from __future__ import annotations
@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from datagen.cli import plural
 from datagen.device import constant
 from datagen.files import atomic_write
 from datagen.shards import read_fields, tar_path, to_uint8
@@ -59,7 +60,7 @@ def _mean(values):
 @torch.no_grad()
 def evaluate(model: PanoLAM, data, manifest: dict, split: str = "test", resolution: int | None = None,
              lpips=None, faces=None, limit: int | None = None, progress=None) -> dict:
-    """Metrics per subject and view plus their means; ``faces``: the :mod:`panolam.faces` module (CSIM, APD) or None."""
+    """Metrics per subject and view plus their means; ``faces``: the :mod:`datagen.faces` module (CSIM, APD) or None."""
     device = next(model.parameters()).device
     subjects = accepted_subjects(manifest, split, data)[:limit]
     check_subject_shards(data, subjects)
@@ -142,9 +143,9 @@ def write_report(result: dict, out: Path, title: str, notes: list[str] = ()) -> 
               f"render {result['render_ms_per_view_median']:.1f} ms per view (median).", ""]
     if "csim_between_subjects" in result:
         lines += [f"CSIM between the front targets of different subjects: {fmt(result['csim_between_subjects'])} "
-                  f"({result['csim_between_subjects_faces']} faces): what an identity-blind prediction scores; "
-                  "CSIM above it shows identity.", ""]
-    lines += list(notes)
+                  f"({plural(result['csim_between_subjects_faces'], 'face')}): what an identity-blind prediction "
+                  "scores; CSIM above it shows identity.", ""]
+    lines += ["\n\n".join(notes)] if notes else []  # each note a paragraph of its own
     md, js = out / "eval.md", out / "eval.json"
     atomic_write(md, ("\n".join(lines) + "\n").encode())
     atomic_write(js, (json.dumps(result, indent=1) + "\n").encode())

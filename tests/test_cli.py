@@ -136,3 +136,68 @@ def test_disk_full_is_one_line_and_leaves_nothing_complete(tmp_path, capsys, mon
                         "--quiet"], capsys)
     assert code == 2 and len(err.strip().splitlines()) == 1 and "disk full" in err and "--resume" in err
     assert sorted(p.name for p in out.iterdir()) == [".datagen.lock", "index.json"]  # no shard, no temporary
+
+
+@pytest.fixture
+def fast_cli(monkeypatch):
+    """`datagen sample` with the tests' fast procedural grid (tiny_spec's), so its arguments below name tiny_dataset."""
+    import datagen.pipeline as pipeline
+    from tests.conftest import FAST_PROCEDURAL
+
+    job = pipeline.JobSpec
+    monkeypatch.setattr(pipeline, "JobSpec", lambda generator_options, **kw: job(
+        generator_options={**FAST_PROCEDURAL, **generator_options}, **kw))
+    return ["sample", "--protocol", "360", "--subjects", "3", "--resolution", "32", "--views", "4", "--seed", "7",
+            "--shard-size", "2", "--quiet", "--out"]
+
+
+def test_rerunning_a_complete_job_says_so_and_writes_nothing(tiny_dataset, fast_cli, capsys):
+    before = {p: p.stat().st_mtime_ns for p in tiny_dataset.rglob("*")}
+    code, out, err = run(fast_cli + [str(tiny_dataset)], capsys)
+    assert (code, out, err) == (0, f"{tiny_dataset}: complete (2 of 2 shards, 3 subjects); nothing to do\n", "")
+    code, out, _ = run(fast_cli + [str(tiny_dataset), "--shard-index", "1", "--num-shards", "2"], capsys)
+    assert code == 0 and "complete (this job's 1 of 2 shards, 1 subject)" in out
+    assert {p: p.stat().st_mtime_ns for p in tiny_dataset.rglob("*")} == before
+
+
+def test_rerunning_another_or_a_partly_done_job_is_refused(tiny_dataset, fast_cli, tmp_path, capsys):
+    from tests.test_dataset import copy_dataset
+
+    code, _, err = run(fast_cli + [str(tiny_dataset), "--seed", "8"], capsys)
+    assert code == 2 and "already holds a dataset made with other settings (seed)" in err
+    partly = copy_dataset(tiny_dataset, tmp_path / "ds")
+    (partly / "shard-000001.json").unlink()
+    code, _, err = run(fast_cli + [str(partly)], capsys)
+    assert code == 2 and "already has 1 complete shard(s) of this job; pass --resume" in err
+
+
+def test_info_prints_readable_lines(tiny_dataset, capsys):
+    from datagen.cli import byte_size, readable
+
+    code, out, _ = run(["info", str(tiny_dataset)], capsys)
+    lines = out.splitlines()
+    assert code == 0 and "subjects: 3" in lines and "shards_complete: 2" in lines and "{" not in out
+    assert any(line.startswith("size: ") and line.endswith(" KiB") for line in lines)
+    assert lines[lines.index("software:") + 1].startswith("  ")
+    assert [byte_size(n) for n in (512, 27023360, 3 << 30)] == ["512 B", "25.8 MiB", "3.0 GiB"]
+    assert readable({"subjects": 12345, "seed": 1000, "software": {"torch": "2.13.0"}}) == \
+        ["subjects: 12,345", "seed: 1000", "software:", "  torch: 2.13.0"]
+
+
+def _cli_parsers():
+    from labeling_tool.cli import build_parser as label_tool
+    from panolam.cli import build_parser as panolam
+
+    from datagen.cli import build_parser as datagen
+    return {"datagen": datagen, "label-tool": label_tool, "panolam": panolam}
+
+
+@pytest.mark.parametrize("command", ["datagen", "label-tool", "panolam"])
+def test_every_option_of_every_subcommand_has_help(command):
+    import argparse
+
+    parser = _cli_parsers()[command]()
+    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+    missing = [f"{name} {a.option_strings[0] if a.option_strings else a.dest}"
+               for name, sub in commands.items() for a in sub._actions if not a.help]
+    assert missing == []

@@ -157,9 +157,11 @@ def test_verify_reports_a_missing_sidecar(tiny_dataset, tmp_path):
     assert len(report["problems"]) == 1 and "incomplete" in report["problems"][0]
 
 
-def test_rerun_without_resume_is_refused(tiny_dataset):
+def test_rerun_of_a_partly_done_job_without_resume_is_refused(tiny_dataset, tmp_path):
+    ds = copy_dataset(tiny_dataset, tmp_path / "ds")
+    (ds / "shard-000001.json").unlink()
     with pytest.raises(UserError, match="--resume"):
-        run_sample(tiny_spec(tiny_dataset), progress=False)
+        run_sample(tiny_spec(ds), progress=False)
 
 
 def test_resuming_a_complete_dataset_with_workers_does_nothing(tiny_dataset):

@@ -8,13 +8,13 @@ import pytest
 from PIL import Image, UnidentifiedImageError
 from scipy.spatial.transform import Rotation
 
+from datagen import faces
 from datagen.cameras import (FOV_MEAN, RADIUS_MEAN, camera_position, fov_to_focal, intrinsics, look_at,
                              pixel_intrinsics)
+from datagen.faces import (CENTRE_BELOW_EYES, CROP_SIDE, EYE_DISTANCE, EYE_TO_MOUTH, GENERIC_FACE, FaceError, apd,
+                           crop_head, csim, detect_faces, head_pose, landmarks, pose_from_landmarks)
 from datagen.shards import to_uint8
-from panolam import faces
-from panolam.faces import (CENTRE_BELOW_EYES, CROP_SIDE, EYE_DISTANCE, EYE_TO_MOUTH, GENERIC_FACE,
-                           FaceError, apd, crop_head, csim, detect_faces, head_pose, landmarks, load_image,
-                           pose_from_landmarks, prepare_photo)
+from panolam.photos import load_image, prepare_photo, read_photo
 
 try:
     faces.check_dlib()
@@ -301,10 +301,10 @@ def test_a_photo_above_the_pixel_limit_is_refused_from_its_header(tmp_path):
     t0 = time.perf_counter()
     for src in (tmp_path / "huge.png", _png_header(12000, 12000)):
         with pytest.raises(FaceError, match="12000x12000 px is 144 megapixels, above the limit of 100"):
-            faces.read_photo(src)
+            read_photo(src)
     assert time.perf_counter() - t0 < 1  # nothing was decoded
     with pytest.raises(FaceError, match="cannot read image"):  # within the limit: decoding finds the data missing
-        faces.read_photo(_png_header(4000, 3000))
+        read_photo(_png_header(4000, 3000))
 
 
 def test_a_large_photo_is_downscaled_as_it_is_decoded(photo, tmp_path):
@@ -314,14 +314,14 @@ def test_a_large_photo_is_downscaled_as_it_is_decoded(photo, tmp_path):
     big.save(tmp_path / "big.png", compress_level=1)
     del big
     tracemalloc.start()
-    jpeg = faces.read_photo(tmp_path / "big.jpg")
+    jpeg = read_photo(tmp_path / "big.jpg")
     peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
     # the JPEG decoder itself works at half size (3000 px, under the 4096 px working limit), so no
     # full-size array ever exists: a float copy of the whole photo would take 324 MB
     assert jpeg.rgb.shape == (2250, 3000, 3) and jpeg.size == (6000, 4500) and jpeg.scale == 0.5
     assert peak < 0.5 * 6000 * 4500 * 3 * 4
-    png = faces.read_photo(tmp_path / "big.png")  # decoded whole (8 bits), then area-averaged
+    png = read_photo(tmp_path / "big.png")  # decoded whole (8 bits), then area-averaged
     assert png.rgb.shape[:2] == (3072, 4096) and png.scale == pytest.approx(4096 / 6000)
     small = np.asarray(Image.fromarray(to_uint8(png.rgb)).resize((512, 512), Image.BOX)).astype(float)
     assert np.abs(small - photo).mean() < 4  # the same picture
@@ -337,19 +337,19 @@ def test_formats_pillow_lacks_are_read_by_openimageio(photo, tmp_path):
     out.close()
     with pytest.raises(UnidentifiedImageError):
         Image.open(tmp_path / "photo.exr")
-    back = faces.read_photo(tmp_path / "photo.exr")
+    back = read_photo(tmp_path / "photo.exr")
     assert back.rgb.shape == (512, 512, 3) and np.abs(back.rgb - srgb).max() < 2 / 255  # sRGB again
     with pytest.raises(FaceError, match="not an image format Pillow can decode"):  # bytes: Pillow only
-        faces.read_photo((tmp_path / "photo.exr").read_bytes())
+        read_photo((tmp_path / "photo.exr").read_bytes())
     (tmp_path / "junk.exr").write_bytes(b"not an image at all")
     with pytest.raises(FaceError, match="not an image format Pillow or OpenImageIO can decode"):
-        faces.read_photo(tmp_path / "junk.exr")
+        read_photo(tmp_path / "junk.exr")
     wide = np.tile(np.linspace(0, 1, 9000, dtype=np.float32), (6, 1))[..., None]  # 9000 px: read in strips, 1/3
     out = oiio.ImageOutput.create(str(tmp_path / "wide.exr"))
     out.open(str(tmp_path / "wide.exr"), oiio.ImageSpec(9000, 6, 1, "float"))
     out.write_image(wide)
     out.close()
-    back = faces.read_photo(tmp_path / "wide.exr")
+    back = read_photo(tmp_path / "wide.exr")
     assert back.rgb.shape == (2, 3000, 3) and back.size == (9000, 6)
     expected = wide[:3, :, 0].reshape(3, 3000, 3).mean(axis=(0, 2))
     expected = np.where(expected <= 0.0031308, 12.92 * expected, 1.055 * expected ** (1 / 2.4) - 0.055)

@@ -8,21 +8,22 @@ from pathlib import Path
 import pytest
 import torch
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "gpu_check.py"
+REPO = Path(__file__).resolve().parents[1]
+SCRIPT = [sys.executable, "-m", "benchmarks.gpu_check"]
 
 
 def test_without_a_gpu_it_says_so_and_points_to_the_dry_run(tmp_path):
     if torch.cuda.is_available():
         pytest.skip("a GPU is here: the script would run for real")
-    done = subprocess.run([sys.executable, str(SCRIPT), "--out-dir", str(tmp_path)], capture_output=True, text=True)
+    done = subprocess.run([*SCRIPT, "--out-dir", str(tmp_path)], capture_output=True, text=True, cwd=REPO)
     assert done.returncode == 2 and "no CUDA device here; use --dry-run" in done.stderr
     assert not list(tmp_path.iterdir())
 
 
 @pytest.mark.slow
 def test_the_dry_run_completes_every_section(tmp_path):
-    done = subprocess.run([sys.executable, str(SCRIPT), "--dry-run", "--out-dir", str(tmp_path)],
-                          capture_output=True, text=True, timeout=900)
+    done = subprocess.run([*SCRIPT, "--dry-run", "--out-dir", str(tmp_path)], capture_output=True, text=True,
+                          timeout=900, cwd=REPO)
     assert done.returncode == 0, done.stderr[-3000:]
     results = json.loads((tmp_path / "gpu_check_dry_run.json").read_text())
     sections = ("cuda_tests", "gan_precision", "gan_throughput", "workers", "training", "inference")

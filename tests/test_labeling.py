@@ -15,13 +15,19 @@ pytest.importorskip("vtkmodules", reason="the review window needs VTK")
 
 from labeling_tool.cli import build_queue, main as label_main  # noqa: E402
 from datagen.events import EventLog, parse_event, read_log, read_logs, verdicts  # noqa: E402
-from labeling_tool.gui import ReviewApp  # noqa: E402
+from labeling_tool.review import ReviewApp  # noqa: E402
 from datagen.manifests import read_manifest  # noqa: E402
 from labeling_tool.manifest import compile_manifest, subject_hash  # noqa: E402
 from datagen.preflags import FORMAT as PREFLAGS_FORMAT, write_preflags  # noqa: E402
 from datagen.errors import UserError  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def tiny_dataset(tiny_dataset, tmp_path_factory):
+    """This module's copy of the shared dataset: compiling caches its shard checks in the dataset folder."""
+    return Path(shutil.copytree(tiny_dataset, tmp_path_factory.mktemp("labeling") / "ds"))
 
 
 @pytest.fixture
@@ -75,7 +81,7 @@ def test_default_vtk_and_pyvista_keys_do_not_fire(app_factory):
     app = app_factory()
     app.press("v")
     surface = app._surface
-    for k in ["w", "q", "e", "f", "3", "plus", "Up"]:
+    for k in ["w", "q", "e", "f", "plus", "Up"]:  # VTK's own keys ("3": stereo) do nothing; "3" is a verdict here
         app.press(k)
     assert surface.GetProperty().GetRepresentation() == 2  # still surface, not wireframe
     assert not app.closed  # 'q' / 'e' did not close the window
@@ -139,7 +145,7 @@ def test_kill_9_mid_session_loses_and_duplicates_nothing(tiny_dataset, tmp_path)
     script = (
         "import sys, time\n"
         "from labeling_tool.cli import build_queue\n"
-        "from labeling_tool.gui import ReviewApp\n"
+        "from labeling_tool.review import ReviewApp\n"
         f"_, q = build_queue({str(tiny_dataset)!r}, 'all')\n"
         f"app = ReviewApp({str(tiny_dataset)!r}, q * 40, 'carol', {str(labels)!r}, off_screen=True, window_size=(320, 200))\n"
         "keys = ['g', '1', 'Right'] * 1000\n"
@@ -443,3 +449,23 @@ def test_reject_flagged_without_current_preflags_is_one_line(tiny_dataset, tmp_p
     assert code == 2 and len(err.strip().splitlines()) == 1 and message in err and not out.exists()
     assert label_main(["compile", str(root), "--labels", str(labels), "--out", str(out)]) == 0
     assert "no current pre-flags" in capsys.readouterr().out
+
+
+def test_auto_explains_its_columns_and_says_how_many_it_shows(tiny_dataset, tmp_path, capsys):
+    from tests.test_dataset import copy_dataset
+
+    ds = copy_dataset(tiny_dataset, tmp_path / "ds")
+    assert label_main(["auto", str(ds), "--quiet", "--top", "2"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[1] == "worst first; score = the subject's highest pre-flag score, 0 to 1 (flagged from 0.50):"
+    assert len(lines) == 5
+    assert lines[-1] == f"2 of 3 shown (--top N shows more; every score is in {ds / 'preflags.json'})"
+    assert label_main(["auto", str(ds), "--quiet"]) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == "3 of 3 shown"
+
+
+def test_stats_without_verdicts_says_so_in_one_line(tiny_dataset, tmp_path, capsys):
+    (tmp_path / "labels").mkdir()
+    assert label_main(["stats", str(tiny_dataset), "--labels", str(tmp_path / "labels")]) == 0
+    assert capsys.readouterr().out == (f"no verdicts in {tmp_path / 'labels'} yet; review with: label-tool review "
+                                       f"{tiny_dataset} --reviewer NAME --labels {tmp_path / 'labels'}\n")

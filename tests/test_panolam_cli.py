@@ -211,3 +211,14 @@ def test_os_errors_naming_a_file_are_one_line(error, line, capsys):
     with pytest.raises(OSError):  # an OSError about no file is a bug: its traceback stays
         run_command("panolam", {"train": lambda args: (_ for _ in ()).throw(OSError("socket"))},
                     SimpleNamespace(command="train"), "")
+
+
+def test_eval_report_counts_faces_in_words_and_gives_each_note_a_paragraph(tmp_path):
+    from panolam.evaluate import summarize, write_report
+
+    result = summarize([], [], [0.1], [0.01])
+    for faces, shown in ((1, "(1 face)"), (2, "(2 faces)")):
+        result.update(csim_between_subjects=0.5, csim_between_subjects_faces=faces)
+        md, _ = write_report(result, tmp_path, "t", ["NOTE: few subjects", "LPIPS: not computed"])
+        text = md.read_text()
+        assert shown in text and text.endswith("\n\nNOTE: few subjects\n\nLPIPS: not computed\n")

@@ -390,7 +390,7 @@ def test_sexes_differ_in_face_shape_and_brows_stay_visible():
 
 
 def test_age_brings_nasolabial_folds_and_forehead_lines():
-    from datagen.generators.procedural import _anchors_of, _skin_rgb
+    from datagen.generators.procedural.anatomy import _anchors_of, _skin_rgb
 
     young = first_params(lambda p: p["facial_hair"] == "none" and not p["makeup"])
     old = dict(young, age=80.0)

@@ -24,11 +24,12 @@ from datagen.errors import UserError  # noqa: E402
 from datagen.files import atomic_write  # noqa: E402
 from datagen.pipeline import JobSpec, make_index, software_info  # noqa: E402
 from datagen.shards import INDEX_NAME, ShardWriter, dumps, iter_tar_samples, read_index, subject_id  # noqa: E402
-from labeling_tool import gui  # noqa: E402
+from labeling_tool.review import app as review_app  # noqa: E402
 from labeling_tool.cli import build_queue, main as label_main  # noqa: E402
 from datagen.events import read_log  # noqa: E402
-from labeling_tool.gui import (BACKGROUND, COLORS, FLAG_REASON, HELP, Layout, Prefetcher, QueueItem,  # noqa: E402
-                               ReviewApp, Window, fit_window, polydata, surface_actor, surface_mesh, view_points)
+from labeling_tool.review import (BACKGROUND, COLORS, FLAG_REASON, HELP, Layout, Prefetcher,  # noqa: E402
+                                  QueueItem, ReviewApp, Window, fit_window, polydata, surface_actor, surface_mesh,
+                                  view_points)
 from labeling_tool.manifest import compile_manifest  # noqa: E402
 from labeling_tool.preflags import DETECTOR_NAMES  # noqa: E402
 
@@ -495,8 +496,8 @@ def test_a_window_vtk_cannot_open_leaves_no_labels_folder(tiny_dataset, tmp_path
     def no_window(*args, **kwargs):
         raise UserError("VTK could not open a window on the display ':0' (it made a vtkEGLRenderWindow)")
 
-    monkeypatch.setattr(gui, "XDisplay", Display)
-    monkeypatch.setattr(gui, "Window", no_window)
+    monkeypatch.setattr(review_app, "XDisplay", Display)
+    monkeypatch.setattr(review_app, "Window", no_window)
     _, queue = build_queue(str(tiny_dataset), "all")
     labels = tmp_path / "new" / "deeper" / "labels"
     with pytest.raises(UserError, match="VTK could not open a window"):

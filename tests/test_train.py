@@ -198,7 +198,7 @@ def test_eval_and_cli_end_to_end(curated, tmp_path):
 
 
 def test_eval_asks_the_face_tools_for_csim_on_front_views_and_apd_on_all(curated):
-    """The face metrics' plumbing, with recording stand-ins for :mod:`panolam.faces` (dlib is tested there)."""
+    """The face metrics' plumbing, with recording stand-ins for :mod:`datagen.faces` (dlib is tested there)."""
     from types import SimpleNamespace
     from panolam.data import accepted_subjects, load_views
     from panolam.evaluate import evaluate
@@ -262,7 +262,7 @@ def test_eval_warns_when_it_scores_training_subjects(curated, tmp_path):
     r = _cli("eval", "--data", data, "--manifest", manifest, "--split", "train", "--ckpt", run, "--no-faces",
              "--limit", "1")
     assert r.returncode == 0, r.stderr
-    assert "1 of the evaluated subjects were training subjects" in r.stderr
+    assert "1 of the evaluated subjects were training subjects" in r.stdout and not r.stderr
     assert "WARNING" in (run / "eval-train" / "eval.md").read_text()
 
 

@@ -147,8 +147,8 @@ class FlatBack(_BackDetector):
 
     @dataclass(frozen=True)
     class Settings:
-        z: float = 3.0   # tuning seeds: clean subjects reach z 1.3, injected flat backs 3.8 to 8.7
-        z_sat: float = 8.0
+        z: float = 3.0   # robust z of the back's curvature at which it flags (score 0.5)
+        z_sat: float = 8.0  # z at which the score reaches 1
 
     description = ("a flattened or truncated back of the head: how far the back view's surface curves away from "
                    "the camera across the head (depth at 80% of the half-width minus at the centre, over the "
@@ -176,12 +176,10 @@ class Seam(_BackDetector):
 
     @dataclass(frozen=True)
     class Settings:
-        z: float = 3.0   # tuning seeds: clean subjects reach colour z 1.7, injected seams mostly 3.6 to 6.7
-        z_sat: float = 8.0
-        colour_floor: float = 0.05  # log ratio
-        # Tuning seeds: clean subjects step 0.00 px (median), 0.34 at most (147 subjects); injected seams
-        # 0.28 to 0.98, 38 of 40 above 0.39 (z 3 with this floor).
-        step_floor: float = 0.13  # px
+        z: float = 3.0   # robust z of the colour gradient or the depth step at which it flags
+        z_sat: float = 8.0  # z at which the score reaches 1
+        colour_floor: float = 0.05  # least scale of the colour feature, log ratio
+        step_floor: float = 0.13  # least scale of the depth step, px at the working resolution
 
     description = ("a seam or discontinuity down the back: horizontal colour gradient of the back view's central "
                    "columns against the head's other columns (log ratio), or a step in depth down the centre "
@@ -228,12 +226,10 @@ class BlurryBack(_BackDetector):
 
     @dataclass(frozen=True)
     class Settings:
-        z: float = 3.0   # tuning seeds (scale at the floor): clean subjects up to 3.2 (2 of 483), injected
-        z_sat: float = 8.0  # blurry backs from 1.5 (severity 0.34) to 24; the colour cue: clean <= 1.1
-        width_floor: float = 0.08  # px: the spread of clean backs (curly and long hair widen the outline; tuning
-                                   # seeds 0, 1, 5, 6 and 8 give 0.05-0.09; at 0.02 a seed of clean subjects only
-                                   # flagged 6 of 160 afros and bobs)
-        colour_floor: float = 0.05  # log ratio
+        z: float = 3.0   # robust z of the outline width or the sharpness ratio at which it flags
+        z_sat: float = 8.0  # z at which the score reaches 1
+        width_floor: float = 0.08  # least scale of the outline width, px (curly and long hair widen clean outlines)
+        colour_floor: float = 0.05  # least scale of the sharpness ratio, log ratio
 
     def measure(self, v):
         if v.back is None:

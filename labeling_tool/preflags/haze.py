@@ -34,9 +34,8 @@ class Haze(Detector):
         share: float = 0.003       # haze area / silhouette area in the worst view (clean heads: 0)
         share_sat: float = 0.05
         opening: float = 1.5       # px at 64 px: material an opening of this radius removes is thin
-        thin: float = 0.02         # thin material far from the body / silhouette area (tuning: 397 clean
-        thin_sat: float = 0.06     # subjects at most 0.0001, detached opaque blobs (floaters) up to 0.013,
-                                   # 22 of 25 haze above it, 2 of the 3 the partial-alpha share misses)
+        thin: float = 0.02         # thin material far from the body / silhouette area at which it flags
+        thin_sat: float = 0.06     # that share at which the score reaches 1
 
     def threshold(self):
         return self.settings.share

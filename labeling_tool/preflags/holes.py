@@ -59,16 +59,10 @@ class Holes(Detector):
         silhouette_share: float = 0.002
         silhouette_share_sat: float = 0.02
         min_px: float = 3.0         # at 64 px; smaller holes are ignored (scaled with image area)
-        z: float = 3.0              # crater blob response, robust z against views from the same direction
-                                    # (scale: MAD or the 80th-percentile spread), less the mirrored view's.
-                                    # Tuning seeds 0, 1, 21, 22 (482 clean subjects at 25 % and 4 % defect
-                                    # rates): before the mirrors, the upper half and the 0.002 floor, clean
-                                    # heads reached 7.3 (hairline dips at yaw 45/315, napes, eye sockets);
-                                    # now at most 2.3 (99 %: 1.9), injected craters 1.5 to 7.2 (10 of 12 >= 3).
-                                    # With the 80th-percentile spread (robust_tail), on today's heads: seed 9
-                                    # (18 craters in 96) 18 found, seeds 0 and 1: 8 of 8; craters on 4 of 561
-                                    # clean subjects of seeds 0, 1, 5, 6, 8 and 9
-        z_sat: float = 6.0
+        z: float = 3.0              # crater blob response at which it flags: robust z against views from the
+                                    # same direction (scale: MAD or the 80th-percentile spread), less the
+                                    # mirrored view's
+        z_sat: float = 6.0          # that z at which the score reaches 1
         sigma: float = 2.0          # blob scale in px at 64 px
         erode: float = 4.0          # ignore this many px (at 64 px) inside the silhouette edge
         upper: float = 0.5          # search the top half of the silhouette, the head above the ears (lower, the

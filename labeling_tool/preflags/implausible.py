@@ -16,8 +16,8 @@ class Implausible(Detector):
 
     @dataclass(frozen=True)
     class Settings:
-        z: float = 8.0             # |z| of log mask area or median depth (tuning seeds: clean heads up to 6.6)
-        z_sat: float = 12.0
+        z: float = 8.0             # |z| of log mask area or median depth at which it flags
+        z_sat: float = 12.0        # |z| at which the score reaches 1
 
     def threshold(self):
         return self.settings.z

@@ -22,8 +22,8 @@ import cv2
 import numpy as np
 from scipy import ndimage as ndi
 
+from datagen.faces import cnn_detector, hog_detector
 from datagen.shards import view_name
-from panolam.faces import cnn_detector, hog_detector
 
 from .detector import Detector, Flag
 from .imaging import blob_response, central, nearest_fill, ramp, robust
@@ -31,20 +31,10 @@ from .views import BACK_TOL
 
 BACK_TARGETS = (135.0, 180.0, 225.0)  # equator targets whose views should never show a face
 NO_FACE = -1.0                        # the detector's score when it reports nothing (its floor here)
-# Width a back view is scaled to before the CNN detector reads its head. Tuning (40 injected janus, 147
-# other subjects, 128 px views, head crops about 100 px): 1.5x (192 px) finds 70 % of the faces (with
-# HOG 86 %) in 0.14 s a subject; 2.5x finds 80 % (with HOG also 86 %) in 0.42 s; the back-diagonal
-# views, for 3x the time, add nothing to the union with HOG. No detection on any subject without a janus
-# at any of these sizes.
-CNN_VIEW_PX = 192
-# Width a back view is scaled to before the eye cascade reads it. Tuning (seed 4: 84 janus among them
-# 80 injected; seeds 0, 1, 5 and 6: 476 other subjects): a pair with at least 2 raw detections each on 74
-# janus backs and on 5 others (light textured hair, up to 9 detections), which the skin test removes.
-EYE_VIEW_PX = 256
+CNN_VIEW_PX = 192  # px: width a back view is scaled to before the CNN face detector reads its head
+EYE_VIEW_PX = 256  # px: width a back view is scaled to before the eye cascade reads it
 # Largest mean absolute RGB difference (0-255) between the bridge of the nose of an eye pair and the
-# front view's face for the pair to count. Tuning (seeds 0, 1, 4, 5 and 6, today's heads): the janus
-# pairs' bridges differ by 9-64 (66 of 74 below 60: a second face has the first one's skin, unless
-# blended into hair), the pairs found in textured light hair by 62-132.
+# front view's face for the pair to count (a second face has the first one's skin; textured hair does not).
 SKIN_TOL = 60.0
 
 
@@ -242,19 +232,17 @@ class Janus(Detector):
 
     @dataclass(frozen=True)
     class Settings:
-        z: float = 2.5          # mean of the edge, face-colour and nose-bump robust z-scores (tuning seeds:
-                                # symmetric clean backs up to 2.1; the face detector finds most janus faces)
-        z_sat: float = 4.0
-        cue_cap: float = 3.0    # each z counts up to this, so that no one cue carries the mean (a small bump
-                                # on a smooth back alone gave clean subjects z 2.5-3.3 at a 4 % defect rate)
+        z: float = 2.5          # mean of the edge, face-colour and nose-bump robust z-scores at which it flags
+        z_sat: float = 4.0      # that mean at which the score reaches 1
+        cue_cap: float = 3.0    # each z counts up to this, so that no one cue carries the mean
         face: float = -0.3      # HOG score at which the back view's face flags (below dlib's own 0: partial
-        face_sat: float = 0.5   # faces score -0.4 to 0; tuning: bald backs and napes -0.46 to -0.35, one -0.08)
-        face_diagonal: float = 0.0  # on the back-diagonal views, where the real face's cheek and nose show at
-                                    # the edge (tuning: clean subjects up to -0.02; janus found there alone: 1 of 84)
-        cnn: float = 0.0        # CNN confidence at which it flags: any detection (none on tuning subjects
-        cnn_sat: float = 0.8    # without a janus; found faces mostly 0.8 to 1.05)
+        face_sat: float = 0.5   # faces score -0.4 to 0); the score at which the flag reaches 1
+        face_diagonal: float = 0.0  # HOG score on the back-diagonal views, where the real face's cheek and nose
+                                    # show at the edge
+        cnn: float = 0.0        # CNN confidence at which it flags (any detection)
+        cnn_sat: float = 0.8    # confidence at which the score reaches 1
         eyes: int = 2           # eye-pair strength (detections per eye, skin between) at which it flags
-        eyes_sat: int = 8       # (tuning: no subject without a janus; see EYE_VIEW_PX and SKIN_TOL)
+        eyes_sat: int = 8       # strength at which the score reaches 1
 
     def threshold(self):
         return {"cue_z": self.settings.z, "face_score": self.settings.face,

@@ -20,7 +20,7 @@ from datagen.events import read_logs, verdicts
 
 MIN_VERDICTS = 20         # fewer verdicts (or no bad ones, or no good ones) and nothing is learned
 THUMB_COMPONENTS = 8
-RIDGE = 3.0               # L2 penalty on the (standardised) weights (chosen on a tuning seed)
+RIDGE = 3.0               # L2 penalty on the (standardised) weights
 FOLDS = 5
 
 

@@ -24,10 +24,8 @@ class WashedOut(Detector):
 
     @dataclass(frozen=True)
     class Settings:
-        z: float = 3.2             # tuning seeds 0, 1, 5 and 6 (397 clean subjects, 30 fades): clean up to 2.7 but
-                                   # on seed 1, where 4 pale, grey-haired, light-clad women reach 3.3-4.9; fades
-                                   # 3.7 and up (4.7 on seed 1); scales 0.23-0.34 (a two-sided MAD: 0.23-0.39)
-        z_sat: float = 6.0
+        z: float = 3.2             # z of the fade feature at which it flags
+        z_sat: float = 6.0         # z at which the score reaches 1
         floor: float = 0.05        # scale floor (log saturation + grey, 0..1)
 
     def threshold(self):
