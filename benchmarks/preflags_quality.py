@@ -47,7 +47,6 @@ from labeling_tool.preflags import pipeline
 from labeling_tool.preflags.learn import auc, learn_ranking
 from labeling_tool.preflags.registry import DETECTOR_NAMES
 
-MATCH = {d: ("holes" if d == "hole" else d) for d in DEFECT_TYPES}  # injected class -> its detector
 REPORT = HERE / "reports" / "preflags_quality"
 GALLERY = HERE / "reports" / "preflags_gallery.png"
 QUEUE_SHARE = 0.30
@@ -118,12 +117,12 @@ def evaluate(report: dict, truth: dict) -> dict:
     has = lambda s, d: d in truth[s["subject"]]  # noqa: E731
     clean = [s for s in subjects if not truth[s["subject"]]]
     rows = {}
-    for defect, det in MATCH.items():
-        flagged = [det in s["flags"] for s in subjects]
+    for defect in DEFECT_TYPES:  # each injected class and its detector share its name
+        flagged = [defect in s["flags"] for s in subjects]
         pos = [has(s, defect) for s in subjects]
         row = prf(sum(f and p for f, p in zip(flagged, pos)), sum(f and not p for f, p in zip(flagged, pos)),
                   sum(p and not f for f, p in zip(flagged, pos)))
-        pair = [(s["detectors"][det]["score"], int(has(s, defect))) for s in subjects if has(s, defect) or not truth[s["subject"]]]
+        pair = [(s["detectors"][defect]["score"], int(has(s, defect))) for s in subjects if has(s, defect) or not truth[s["subject"]]]
         row["auc"] = auc(np.array([y for _, y in pair]), np.array([x for x, _ in pair])) if pair else None
         rows[defect] = row
     bad = [bool(truth[s["subject"]]) for s in subjects]
@@ -136,8 +135,8 @@ def evaluate(report: dict, truth: dict) -> dict:
         "rows": rows,
         "clean_flagged_share": sum(1 for s in clean if s["flags"]) / len(clean) if clean else None,
         "clean_flags_by_detector": {n: sum(1 for s in clean if n in s["flags"]) for n in DETECTOR_NAMES},
-        "missed": [{"subject": s["subject"], "defect": d, "why": s["detectors"][MATCH[d]]["why"]}
-                   for s in subjects for d in truth[s["subject"]] if MATCH[d] not in s["flags"]],
+        "missed": [{"subject": s["subject"], "defect": d, "why": s["detectors"][d]["why"]}
+                   for s in subjects for d in truth[s["subject"]] if d not in s["flags"]],
         "clean_flagged": [{"subject": s["subject"], "why": {f: s["detectors"][f]["why"] for f in s["flags"]}}
                           for s in clean if s["flags"]],
         "timing": report["timing"],
@@ -227,7 +226,7 @@ def class_table(rows: dict, auc_key: str = "auc") -> list[str]:
     for name, r in rows.items():
         if not isinstance(r, dict):
             continue
-        label = "any defect -> any flag" if name == "any" else f"{name} -> {MATCH[name]}"
+        label = "any defect -> any flag" if name == "any" else f"{name} -> {name}"
         lines.append(f"| {label} | {r['positives']} | {r['tp']} | {r['fp']} | {r['fn']} | {fmt(r['precision'])} | "
                      f"{fmt(r['recall'])} | {fmt(r.get(auc_key))} |")
     return lines

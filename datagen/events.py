@@ -28,12 +28,13 @@ from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 
+from .defects import REVIEW_REASONS
 from .errors import UserError
 
 ACTIONS = ("good", "bad", "skip", "undo")
 VERDICTS = ("good", "bad", "skip")
 DECISIONS = ("good", "bad")   # the verdicts that make a subject reviewed; skip is "decide later"
-REASONS = ("multiple_faces", "broken_back", "artifacts", "blur", "other")
+REASONS = REVIEW_REASONS
 REVIEWER_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
 

@@ -16,15 +16,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from datagen.defects import DEFECT_CLASSES, REASON_LABELS
 from datagen.errors import UserError
 from datagen.events import EventLog, is_decision
 
-REASON_SHORT = {"multiple_faces": "faces", "broken_back": "back", "artifacts": "artifacts", "blur": "blur",
-                "other": "other"}
+REASON_SHORT = REASON_LABELS
 # the reason a triage click or space gives a cell, from its strongest pre-flag (labeling_tool.preflags)
-FLAG_REASON = {"janus": "multiple_faces", "holes": "broken_back", "flat_back": "broken_back", "seam": "broken_back",
-               "floaters": "artifacts", "haze": "artifacts", "washed_out": "artifacts", "blur": "blur",
-               "blurry_back": "blur", "empty": "other", "implausible": "other", "duplicate": "other"}
+FLAG_REASON = {c.name: c.reason for c in DEFECT_CLASSES}
 DEFAULT_REASON = "artifacts"
 TRIAGE_SHAPE = (5, 8)                     # rows, columns of a triage page
 

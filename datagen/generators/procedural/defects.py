@@ -14,22 +14,24 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from ...defects import INJECTED
 from .anatomy import _cranium, _features, _skin_rgb
 from .hair import _hair_rgb
 from .params import _pick
 from .shapes import BOX, HEAD_SCALE, _local, _smoothstep, _t, sd_capsule, sd_ellipsoid, sd_sphere, smax
 
+# The injected classes of the taxonomy (datagen.defects), in its draw order. As modelled here:
 # janus        a second face on the back of the head (eyes, brows, nose, lips), seen through the hair;
 #              severity sets the size of the face's window (at low severity: partial, blended into hair)
 # flat_back    the back of the head cut flat (severity: the depth of the cut)
 # haze         semi-transparent wisps floating near the head (severity: how many and how dense)
 # seam         a vertical discontinuity down the back: a step in the surface and in colour
 # blurry_back  a smeared back: colour blurred and the surface softened over the back half
-# hole         a crater in the back or top of the head
+# holes        a crater in the back or top of the head
 # floaters     opaque blobs detached from the head
 # washed_out   the whole texture faded toward grey-white
-DEFECT_TYPES = ("janus", "flat_back", "haze", "seam", "blurry_back", "hole", "floaters", "washed_out")
-APPLY_ORDER = ("janus", "haze", "floaters", "hole", "seam", "blurry_back", "flat_back", "washed_out")
+DEFECT_TYPES = INJECTED
+APPLY_ORDER = ("janus", "haze", "floaters", "holes", "seam", "blurry_back", "flat_back", "washed_out")
 
 
 @dataclass
@@ -147,7 +149,7 @@ def apply_floaters(p, P, A, spec):
                           lambda q, sel, blob=blob: _t(blob["rgb"]).expand(q.shape[0], 3)) for blob in spec["blobs"]])
 
 
-# --- hole
+# --- holes
 
 def sample_hole(rng, severity):
     """The crater's direction from the skull's centre (a unit vector over the back and top) and radius
@@ -256,10 +258,10 @@ def apply_washed_out(p, P, A, spec):
 
 
 SAMPLE = {"janus": _severity_only, "flat_back": _severity_only, "haze": sample_haze, "seam": sample_seam,
-          "blurry_back": _severity_only, "hole": sample_hole, "floaters": sample_floaters,
+          "blurry_back": _severity_only, "holes": sample_hole, "floaters": sample_floaters,
           "washed_out": sample_washed_out}
 APPLY = {"janus": apply_janus, "flat_back": apply_flat_back, "haze": apply_haze, "seam": apply_seam,
-         "blurry_back": apply_blurry_back, "hole": apply_hole, "floaters": apply_floaters,
+         "blurry_back": apply_blurry_back, "holes": apply_hole, "floaters": apply_floaters,
          "washed_out": apply_washed_out}
 
 
