@@ -1,4 +1,4 @@
-"""The ``datagen`` command line: sample, verify, preview, info."""
+"""The ``datagen`` command line: sample, verify, preview, export, info."""
 from __future__ import annotations
 
 import argparse
@@ -101,6 +101,17 @@ def build_parser() -> OneLineParser:
     pv.add_argument("--columns", type=int, default=8, help="views per row")
     pv.add_argument("--mask-depth", action="store_true", help="show mask and depth beside each view")
 
+    e = sub.add_parser("export", help="write subjects' views and cameras for nerfstudio, instant-ngp/3DGS or COLMAP")
+    e.add_argument("dataset", help="dataset folder (datagen sample --out)")
+    e.add_argument("--format", required=True, choices=("nerfstudio", "instant-ngp", "colmap"),
+                   help="target layout: nerfstudio transforms.json, instant-ngp/Blender transforms_{train,test}.json "
+                        "(3DGS train.py reads it), or COLMAP text (sparse/0)")
+    e.add_argument("--subject", nargs="+", metavar="ID",
+                   help="subject numbers (e.g. 3) or ids (subj00000003); default: every subject of the complete shards")
+    e.add_argument("--out", required=True, help="output folder; each subject goes to OUT/<subject id>/")
+    e.add_argument("--background", default="transparent", choices=("transparent", "white", "black"),
+                   help="transparent: RGBA PNGs with the mask as alpha; white/black: RGB PNGs on that colour")
+
     i = sub.add_parser("info", help="summarize a dataset")
     i.add_argument("dataset", help="dataset folder (datagen sample --out)")
     i.add_argument("--json", action="store_true", help="print JSON")
@@ -194,6 +205,21 @@ def _preview(args) -> int:
     return 0
 
 
+def _export(args) -> int:
+    from .export import complete_subjects, export_subject
+    from .preview import parse_subject
+
+    subjects = [parse_subject(s) for s in args.subject] if args.subject else complete_subjects(args.dataset)
+    if not subjects:
+        raise UserError(f"{args.dataset}: no complete shards to export (see datagen verify)")
+    for key in subjects:
+        done = export_subject(args.dataset, key, args.format, args.out, args.background)
+        note = (f"; 3DGS's one camera_angle_x (the median) is off by up to {done['file_fov_max_px_error']:.2f} px"
+                if "file_fov_max_px_error" in done else "")
+        print(f"wrote {done['path']} ({args.format}, {done['views']} views{note})")
+    return 0
+
+
 def _info(args) -> int:
     from .preview import dataset_info
 
@@ -233,7 +259,7 @@ def readable(info: dict, indent: str = "") -> list[str]:
     return lines
 
 
-COMMANDS = {"sample": _sample, "verify": _verify, "preview": _preview, "info": _info}
+COMMANDS = {"sample": _sample, "verify": _verify, "preview": _preview, "export": _export, "info": _info}
 
 
 def main(argv=None) -> int:
