@@ -66,6 +66,25 @@ def pixel_intrinsics(K_norm, width: int, height: int):
     return K_norm * scale[..., :, None]
 
 
+def camera_directions(K_norm, resolution: int, rows, cols) -> np.ndarray:
+    """Camera-space ray directions (N, 3) with z = 1 through the centres of pixels (rows, cols) of a
+    square ``resolution`` px image: ((col + 0.5) / R, (row + 0.5) / R) in normalized coordinates,
+    OpenCV axes, normalized intrinsics with skew (the convention of :func:`rays`)."""
+    u, v = (np.asarray(cols) + 0.5) / resolution, (np.asarray(rows) + 0.5) / resolution
+    fx, fy, cx, cy, sk = K_norm[0, 0], K_norm[1, 1], K_norm[0, 2], K_norm[1, 2], K_norm[0, 1]
+    x = (u - cx + cy * sk / fy - sk * v / fy) / fx
+    y = (v - cy) / fy
+    return np.stack([x, y, np.ones_like(x)], axis=-1)
+
+
+def depth_points(cam2world: np.ndarray, K_norm: np.ndarray, resolution: int, rows, cols, depth) -> np.ndarray:
+    """World points (N, 3) at pixels (rows, cols) of a view whose ``depth`` (N,) is the distance
+    along the unit ray from the camera centre (the datasets' depth)."""
+    d = camera_directions(K_norm, resolution, rows, cols) @ cam2world[:3, :3].T
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    return cam2world[:3, 3] + np.asarray(depth)[..., None] * d
+
+
 def camera_position(yaw_deg, pitch_deg, radius) -> np.ndarray:
     """Camera centres (..., 3) on a sphere around the origin, from yaw/pitch in degrees."""
     yaw = np.radians(np.asarray(yaw_deg, dtype=np.float64))

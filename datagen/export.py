@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .cameras import camera_directions, depth_points, pixel_intrinsics
 from .files import atomic_write
 from .shards import (
     dumps,
@@ -48,7 +49,7 @@ def opengl_cam2world(cam2world) -> np.ndarray:
 
 def pixel_camera(K_norm, width: int, height: int) -> dict:
     """Normalized K -> pixel ``fl_x, fl_y, cx, cy, w, h`` (pixel centres at half-integers)."""
-    K = np.asarray(K_norm, dtype=np.float64) * np.array([width, height, 1.0])[:, None]
+    K = pixel_intrinsics(np.asarray(K_norm, dtype=np.float64), width, height)
     return {"fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]),
             "w": int(width), "h": int(height)}
 
@@ -74,27 +75,20 @@ def colmap_pose(cam2world) -> tuple[np.ndarray, np.ndarray]:
     return rotation_to_quaternion(R), -R @ c2w[:3, 3]
 
 
-def pixel_rays(K_norm, width: int, height: int) -> np.ndarray:
-    """Camera-space ray directions (H, W, 3) through pixel centres with z = 1 (OpenCV axes)."""
-    cam = pixel_camera(K_norm, width, height)
-    u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
-    return np.stack([(u - cam["cx"]) / cam["fl_x"], (v - cam["cy"]) / cam["fl_y"], np.ones_like(u)], -1)
-
-
 def ray_to_z_depth(depth, K_norm) -> np.ndarray:
-    """Distance along the unit ray (H, W) -> depth along the camera's z axis (0 stays 0)."""
+    """Distance along the unit ray (R, R) -> depth along the camera's z axis (0 stays 0)."""
     depth = np.asarray(depth, dtype=np.float64)
-    return depth / np.linalg.norm(pixel_rays(K_norm, depth.shape[1], depth.shape[0]), axis=-1)
+    rows, cols = np.indices(depth.shape)
+    return depth / np.linalg.norm(camera_directions(np.asarray(K_norm), depth.shape[0], rows, cols), axis=-1)
 
 
 def backproject(depth, cam2world, K_norm) -> tuple[np.ndarray, np.ndarray]:
-    """World points (N, 3) of the pixels with ray depth > 0, and those pixels' (row, col) (N, 2)."""
+    """World points (N, 3) of the pixels with ray depth > 0 of a square view, and those pixels'
+    (row, col) (N, 2)."""
     depth = np.asarray(depth, dtype=np.float64)
     rows, cols = np.nonzero(depth > 0)
-    dirs = pixel_rays(K_norm, depth.shape[1], depth.shape[0])[rows, cols]
-    dirs = dirs / np.linalg.norm(dirs, axis=-1, keepdims=True)
-    c2w = np.asarray(cam2world, dtype=np.float64)
-    points = (dirs * depth[rows, cols, None]) @ c2w[:3, :3].T + c2w[:3, 3]
+    points = depth_points(np.asarray(cam2world, dtype=np.float64), np.asarray(K_norm, dtype=np.float64),
+                          depth.shape[0], rows, cols, depth[rows, cols])
     return points, np.stack([rows, cols], -1)
 
 

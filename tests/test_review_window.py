@@ -26,10 +26,10 @@ from datagen.pipeline import JobSpec, make_index, software_info  # noqa: E402
 from datagen.shards import INDEX_NAME, ShardWriter, dumps, iter_tar_samples, read_index, subject_id  # noqa: E402
 from labeling_tool.review import app as review_app  # noqa: E402
 from labeling_tool.cli import build_queue, main as label_main  # noqa: E402
+from datagen.cameras import depth_points  # noqa: E402
 from datagen.events import read_log  # noqa: E402
 from labeling_tool.review import (BACKGROUND, COLORS, FLAG_REASON, HELP, Layout, Prefetcher,  # noqa: E402
-                                  QueueItem, ReviewApp, Window, fit_window, polydata, surface_actor, surface_mesh,
-                                  view_points)
+                                  QueueItem, ReviewApp, Window, fit_window, polydata, surface_actor, surface_mesh)
 from labeling_tool.manifest import compile_manifest  # noqa: E402
 from labeling_tool.preflags import DETECTOR_NAMES  # noqa: E402
 
@@ -306,11 +306,11 @@ def sphere_views(radius=0.3, resolution=48):
     return out
 
 
-def test_view_points_follow_the_camera_convention():
+def test_depth_points_follow_the_camera_convention():
     views = sphere_views()
     for c2w, K, _, alpha, depth in views:
         rr, cc = np.nonzero(alpha)
-        p = view_points(c2w, K, 48, rr, cc, depth[rr, cc].astype(np.float64))
+        p = depth_points(c2w, K, 48, rr, cc, depth[rr, cc].astype(np.float64))
         assert np.allclose(np.linalg.norm(p, axis=1), 0.3, atol=1e-4)
 
 

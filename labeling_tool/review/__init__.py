@@ -10,7 +10,7 @@ from .session import FLAG_REASON, QueueItem, ReviewSession
 
 _LAZY = {"ReviewApp": "app", "Window": "window", "fit_window": "window", "BACKGROUND": "layout", "COLORS": "layout",
          "HELP": "layout", "Layout": "layout", "Prefetcher": "prefetch", "polydata": "surface",
-         "surface_actor": "surface", "surface_mesh": "surface", "view_points": "surface"}
+         "surface_actor": "surface", "surface_mesh": "surface"}
 __all__ = ["FLAG_REASON", "QueueItem", "ReviewSession", *_LAZY]
 
 

@@ -7,26 +7,11 @@ from vtkmodules.vtkCommonCore import vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
 from vtkmodules.vtkRenderingCore import vtkActor, vtkPolyDataMapper
 
+from datagen.cameras import depth_points
 from datagen.errors import DatasetError
 from datagen.shards import decode_exr
 
 from .reader import decode_image
-
-
-def view_points(cam2world: np.ndarray, K: np.ndarray, resolution: int, rows: np.ndarray, cols: np.ndarray,
-                depth: np.ndarray) -> np.ndarray:
-    """World points (N, 3) at pixels (rows, cols) of a view with ``depth`` (distance along the ray).
-
-    Rays go through pixel centres ((col + 0.5) / R, (row + 0.5) / R in normalized coordinates),
-    OpenCV camera, normalized intrinsics with skew: the convention of :func:`datagen.cameras.rays`.
-    """
-    u, v = (cols + 0.5) / resolution, (rows + 0.5) / resolution
-    fx, fy, cx, cy, sk = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
-    x = (u - cx + cy * sk / fy - sk * v / fy) / fx
-    y = (v - cy) / fy
-    d = np.stack([x, y, np.ones_like(x)], axis=-1) @ cam2world[:3, :3].T
-    d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    return cam2world[:3, 3] + depth[..., None] * d
 
 
 def surface_mesh(views, max_grid: int = 80, slope: float = 2.0, min_facing: float = 0.2):
@@ -61,7 +46,7 @@ def surface_mesh(views, max_grid: int = 80, slope: float = 2.0, min_facing: floa
             valid &= inside[np.clip(rr + dr, 0, R - 1), np.clip(cc + dc, 0, R - 1)]
         if not valid.any():
             continue
-        pts = view_points(c2w, K, R, rr, cc, np.where(valid, d, 0))
+        pts = depth_points(c2w, K, R, rr, cc, np.where(valid, d, 0))
         scale = rgb.shape[0] / R
         col = rgb[np.minimum((rr * scale).astype(int), rgb.shape[0] - 1),
                   np.minimum((cc * scale).astype(int), rgb.shape[1] - 1)]
