@@ -7,6 +7,7 @@ import sys
 
 from .cameras import PROTOCOLS
 from .errors import OneLineParser, UserError, run_command
+from .text import byte_size, plural, readable
 from .generators import AVAILABLE
 
 
@@ -229,34 +230,6 @@ def _info(args) -> int:
     else:
         print("\n".join(readable(dict(("size", byte_size(v)) if k == "bytes" else (k, v) for k, v in info.items()))))
     return 0
-
-
-NOT_COUNTS = ("seed", "resolution")  # whole numbers shown without thousands separators
-
-
-def byte_size(n: int) -> str:
-    """A byte count for people: '25.8 MiB'."""
-    for unit in ("B", "KiB", "MiB", "GiB"):
-        if n < 1024 or unit == "GiB":
-            return f"{n} B" if unit == "B" else f"{n:,.1f} {unit}"
-        n /= 1024
-
-
-def plural(n: int, word: str) -> str:
-    """'1 face', '2,000 faces'."""
-    return f"{n:,} {word}" + ("" if n == 1 else "s")
-
-
-def readable(info: dict, indent: str = "") -> list[str]:
-    """``key: value`` lines, nested dicts indented under their key, counts with thousands separators."""
-    lines = []
-    for k, v in info.items():
-        if isinstance(v, dict):
-            lines += [f"{indent}{k}:"] + readable(v, indent + "  ")
-        else:
-            shown = f"{v:,}" if isinstance(v, int) and not isinstance(v, bool) and k not in NOT_COUNTS else v
-            lines.append(f"{indent}{k}: {shown}")
-    return lines
 
 
 COMMANDS = {"sample": _sample, "verify": _verify, "preview": _preview, "export": _export, "info": _info}

@@ -20,10 +20,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from datagen.cli import plural
 from datagen.device import constant
 from datagen.files import atomic_write
 from datagen.shards import read_fields, tar_path, to_uint8
+from datagen.text import plural
 
 from .data import BACKGROUND, accepted_subjects, check_subject_shards, decode_views, view_yaws
 from .gaussians import Gaussians

@@ -172,7 +172,7 @@ def test_rerunning_another_or_a_partly_done_job_is_refused(tiny_dataset, fast_cl
 
 
 def test_info_prints_readable_lines(tiny_dataset, capsys):
-    from datagen.cli import byte_size, readable
+    from datagen.text import byte_size, readable
 
     code, out, _ = run(["info", str(tiny_dataset)], capsys)
     lines = out.splitlines()
