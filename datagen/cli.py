@@ -1,4 +1,4 @@
-"""The ``datagen`` command line: sample, verify, preview, export, info."""
+"""The ``datagen`` command line: sample, verify, preview, export, shape, info."""
 from __future__ import annotations
 
 import argparse
@@ -77,6 +77,11 @@ def build_parser() -> OneLineParser:
     s.add_argument("--truncation-cutoff", type=int, default=None, help="GANs: truncate the first N ws (default 14)")
     s.add_argument("--save-planes", type=int, default=0, metavar="RES",
                    help="GANs: also store the plane features in fp16 at RES x RES (for distillation)")
+    s.add_argument("--save-shape", type=int, default=0, metavar="RES",
+                   help="also store each subject's head surface, meshed on a RES^3 grid over the generator's box, as "
+                        "shape.ply in its record (binary PLY with vertex colours, world units; see datagen shape)")
+    s.add_argument("--shape-level", type=float, default=None, metavar="L",
+                   help="GANs with --save-shape: the raw density level of the surface (default 10, the originals')")
     s.add_argument("--device", default=None,
                    help="GANs: cpu, cuda (every GPU, see --workers), cuda:N (that GPU only; local backend) or auto "
                         "(default: cuda when available). The procedural generator runs on the CPU")
@@ -112,6 +117,21 @@ def build_parser() -> OneLineParser:
     e.add_argument("--out", required=True, help="output folder; each subject goes to OUT/<subject id>/")
     e.add_argument("--background", default="transparent", choices=("transparent", "white", "black"),
                    help="transparent: RGBA PNGs with the mask as alpha; white/black: RGB PNGs on that colour")
+
+    sh = sub.add_parser("shape", help="write one subject's head surface as a coloured PLY, OBJ or GLB mesh")
+    sh.add_argument("dataset", help="dataset folder (datagen sample --out)")
+    sh.add_argument("--subject", required=True, help="subject number (e.g. 3) or id (subj00000003)")
+    sh.add_argument("--out", required=True, help="mesh file to write: .ply, .obj or .glb")
+    sh.add_argument("--res", type=int, default=None, metavar="RES",
+                    help="grid resolution; default: the stored shape, else 256 (a shape not stored is extracted again "
+                         "from the generator)")
+    sh.add_argument("--level", type=float, default=None,
+                    help="GANs: the raw density level of the surface (default: the stored shape's, else 10)")
+    sh.add_argument("--checkpoint", help="GAN datasets: the checkpoint to extract with (default: the path the dataset "
+                                         "was made from; its sha256 must be the recorded one)")
+    sh.add_argument("--device", default=None, help="GAN datasets: cpu, cuda, cuda:N or auto (default)")
+    sh.add_argument("--memory-budget-mb", type=float, default=None, metavar="MB",
+                    help="GAN datasets: working memory per chunk of grid points (default as datagen sample's)")
 
     i = sub.add_parser("info", help="summarize a dataset")
     i.add_argument("dataset", help="dataset folder (datagen sample --out)")
@@ -152,6 +172,8 @@ def _sample(args) -> int:
             raise UserError("--truncation must be between 0 and 2")
         options["truncation_psi"] = args.truncation
     if args.truncation_cutoff is not None:
+        if args.truncation_cutoff < 0:
+            raise UserError("--truncation-cutoff must be at least 0")
         options["truncation_cutoff"] = args.truncation_cutoff
     if args.save_planes:
         if not gan:
@@ -170,7 +192,8 @@ def _sample(args) -> int:
         raise UserError("--memory-budget-mb must be above 0")
     spec = JobSpec(out=args.out, gan=args.gan, checkpoint=args.checkpoint, generator_options=options,
                    protocol=args.protocol, subjects=args.subjects, resolution=args.resolution, views=args.views,
-                   seed=args.seed, shard_size=args.shard_size, software=software_info())
+                   seed=args.seed, shard_size=args.shard_size, software=software_info(), save_shape=args.save_shape,
+                   shape_level=args.shape_level)
     summary = run_sample(spec, workers=args.workers, backend=args.backend, ray_address=args.ray_address,
                          gpus_per_task=args.gpus_per_task, shard_index=args.shard_index, num_shards=args.num_shards,
                          resume=args.resume, progress=not args.quiet)
@@ -221,10 +244,28 @@ def _export(args) -> int:
     return 0
 
 
+def _shape(args) -> int:
+    from .preview import parse_subject
+    from .shapes import check_resolution, write_shape
+
+    if args.res is not None:
+        check_resolution(args.res, "--res")
+    if args.memory_budget_mb is not None and not args.memory_budget_mb > 0:
+        raise UserError("--memory-budget-mb must be above 0")
+    done = write_shape(args.dataset, parse_subject(args.subject), args.out, resolution=args.res, level=args.level,
+                       checkpoint=args.checkpoint, device=args.device, budget_mb=args.memory_budget_mb)
+    how = "stored" if done["how"] == "stored" else f"extracted in {done['seconds']:.1f} s"
+    print(f"wrote {done['path']} ({done['vertices']:,} vertices, {plural(done['faces'], 'face')}, "
+          f"{done['resolution']}^3 grid, level {done['level']:g}, {how}; {byte_size(done['bytes'])})")
+    return 0
+
+
 def _info(args) -> int:
     from .preview import dataset_info
+    from .shapes import shapes_summary
 
     info = dataset_info(args.dataset)
+    info["shapes"] = shapes_summary(args.dataset)
     if args.json:
         print(json.dumps(info, indent=1, sort_keys=True))
     else:
@@ -232,7 +273,8 @@ def _info(args) -> int:
     return 0
 
 
-COMMANDS = {"sample": _sample, "verify": _verify, "preview": _preview, "export": _export, "info": _info}
+COMMANDS = {"sample": _sample, "verify": _verify, "preview": _preview, "export": _export, "shape": _shape,
+            "info": _info}
 
 
 def main(argv=None) -> int:

@@ -1,16 +1,16 @@
-"""``datagen verify``: checksums, decoding of every image, counts and the metadata schema."""
+"""``datagen verify``: checksums, decoding of every image and stored shape, counts and the metadata schema."""
 from __future__ import annotations
 
 import hashlib
-import json
 from pathlib import Path
 
 import numpy as np
 
 from .errors import DatasetError
-from .files import atomic_write, sha256_file
-from .shards import (TRUTH_DIR, decode_sample, dumps, iter_tar_samples, read_fields, read_index, read_sidecar,
-                     shard_index, sidecar_path, tar_path, truth_path)
+from .files import sha256_file
+from .shapes import check_mesh
+from .shards import (SHAPE_FIELD, TRUTH_DIR, decode_sample, iter_tar_samples, read_fields, read_index,
+                     read_sidecar, shard_index, sidecar_path, tar_path, truth_path)
 
 SUBJECT_KEYS = ("format", "subject_id", "subject_index", "dataset_seed", "generator", "latent", "protocol",
                 "pivot", "resolution", "views", "software", "depth", "camera_convention")
@@ -45,8 +45,9 @@ def check_metadata(meta: dict, views: int, resolution: int) -> list[str]:
     return problems
 
 
-def verify_shard(root, shard: dict, views: int, resolution: int) -> list[str]:
-    """Problems of one shard, each a line naming the file."""
+def verify_shard(root, shard: dict, views: int, resolution: int, shape: int = 0) -> list[str]:
+    """Problems of one shard, each a line naming the file. ``shape``: the grid resolution of the
+    shape each subject must hold (0: none may)."""
     i = shard_index(shard["name"])
     tar = tar_path(root, i)
     try:
@@ -73,12 +74,17 @@ def verify_shard(root, shard: dict, views: int, resolution: int) -> list[str]:
         for key, fields in iter_tar_samples(tar):
             seen.append(key)
             digests[key] = fields_digest(fields)
-            expected_fields = 1 + 3 * views + sum(f.endswith(".npy") for f in fields)
-            if len(fields) != expected_fields or not any(f == "json" for f in fields):
-                problems.append(f"{tar}: subject {key} has {len(fields)} fields, expected {expected_fields}")
+            expected_fields = 1 + 3 * views + sum(f.endswith(".npy") for f in fields) + bool(shape)
+            if len(fields) != expected_fields or not any(f == "json" for f in fields) \
+                    or (SHAPE_FIELD in fields) != bool(shape):
+                problems.append(f"{tar}: subject {key} has {len(fields)} fields, expected {expected_fields}"
+                                + (f" with {SHAPE_FIELD}" if shape else ""))
                 continue
             sample = decode_sample(key, fields, str(tar))
             problems += [f"{tar}: subject {key}: {p}" for p in check_metadata(sample.metadata, views, resolution)]
+            if shape:
+                problems += check_shape(fields[SHAPE_FIELD], sample.metadata.get("shape"), shape,
+                                        f"{tar}: subject {key}")
             if sorted(sample.arrays) != sorted(sample.metadata.get("arrays", {})):
                 problems.append(f"{tar}: subject {key}: arrays differ from those its metadata lists")
             for v, (rgb, a, d) in enumerate(zip(sample.rgb, sample.alpha, sample.depth)):
@@ -94,6 +100,16 @@ def verify_shard(root, shard: dict, views: int, resolution: int) -> list[str]:
     if not problems:
         problems += check_byte_ranges(root, i, side, digests)
     return problems
+
+
+def check_shape(data: bytes, record, resolution: int, where: str) -> list[str]:
+    """A stored shape: its metadata record is there with the dataset's grid resolution, and the
+    mesh passes :func:`datagen.shapes.check_mesh` (decodes, not empty, inside its box)."""
+    if not isinstance(record, dict):
+        return [f"{where}: metadata lacks the 'shape' record of its {SHAPE_FIELD}"]
+    if record.get("resolution") != resolution:
+        return [f"{where}: shape resolution {record.get('resolution')}, expected {resolution}"]
+    return check_mesh(data, record, where)
 
 
 def fields_digest(fields: dict) -> str:
@@ -128,6 +144,7 @@ def verify_dataset(root, progress: bool = False) -> dict:
     root = Path(root)
     index = read_index(root)
     views, resolution = index["views_per_subject"], index["settings"]["resolution"]
+    shape = index["settings"].get("save_shape", 0)
     problems, complete, subjects = [], 0, 0
     shards = index["shards"]
     it = shards
@@ -136,65 +153,10 @@ def verify_dataset(root, progress: bool = False) -> dict:
 
         it = tqdm(shards, unit="shard", desc="verifying")
     for shard in it:
-        p = verify_shard(root, shard, views, resolution)
+        p = verify_shard(root, shard, views, resolution, shape)
         problems += p
         if not p:
             complete += 1
             subjects += len(shard["subjects"])
     stray = sorted(str(p) for p in list(root.glob(".*tmp-*")) + list((root / TRUTH_DIR).glob(".*tmp-*")))
     return {"shards": len(shards), "complete": complete, "subjects": subjects, "problems": problems, "stray": stray}
-
-
-# ----------------------------------------------------------------------------------------------
-# The fast check readers run before they rely on shards (training, manifest compilation)
-
-SHARD_CHECKS = ".verified-shards.json"  # in the dataset folder: the shards that passed check_shards
-
-
-def check_shards(root, shards) -> list[str]:
-    """Problems (one line each, naming the file) of the shards numbered ``shards`` of a dataset:
-    the sidecar is there and readable, and the tar has the size and sha256 it records, as
-    ``datagen verify`` checks them (images are not decoded). Empty when all pass.
-
-    A shard that passed is remembered in ``root/.verified-shards.json`` with the size, inode, mtime
-    and ctime of its tar and sidecar; while those stay the same it is not hashed again, so a second
-    check costs a few ``stat`` calls (a write that restores the mtime still changes the ctime). A dataset folder that cannot be written is checked in full every time.
-    """
-    root = Path(root)
-    cache_path = root / SHARD_CHECKS
-    try:
-        cache = json.loads(cache_path.read_text())
-    except (OSError, ValueError):
-        cache = {}
-    cache = cache if isinstance(cache, dict) else {}
-    problems, passed = [], {}
-    for i in sorted(set(shards)):
-        tar, side_path = tar_path(root, i), sidecar_path(root, i)
-        side = read_sidecar(root, i)
-        if side is None:
-            problems.append(f"{tar}: no readable sidecar {side_path.name}: the shard is incomplete or damaged "
-                            f"(datagen verify {root} tells more)")
-            continue
-        if not tar.exists():
-            problems.append(f"{tar}: missing although its sidecar exists")
-            continue
-        stamp = [_stat_stamp(tar), _stat_stamp(side_path), side.get("tar_sha256")]
-        if cache.get(tar.name) == stamp:
-            passed[tar.name] = stamp
-        elif tar.stat().st_size != side.get("tar_bytes"):
-            problems.append(f"{tar}: size {tar.stat().st_size} differs from the sidecar's {side.get('tar_bytes')}")
-        elif sha256_file(tar) != side.get("tar_sha256"):
-            problems.append(f"{tar}: sha256 differs from the sidecar (corrupted)")
-        else:
-            passed[tar.name] = stamp
-    if any(cache.get(name) != stamp for name, stamp in passed.items()):
-        try:
-            atomic_write(cache_path, dumps({**cache, **passed}))
-        except OSError:
-            pass  # a read-only dataset: nothing remembered, the next check hashes again
-    return problems
-
-
-def _stat_stamp(path: Path) -> list[int]:
-    st = path.stat()
-    return [st.st_size, st.st_ino, st.st_mtime_ns, st.st_ctime_ns]

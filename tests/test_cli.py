@@ -42,6 +42,7 @@ def run(argv, capsys):
     (["sample", "--out", "{tmp}/x", "--defect-severity", "high"], "--defect-severity must be LO,HI"),
     (["sample", "--out", "{tmp}/x", "--background", "purple"], "white, black, grey"),
     (["sample", "--out", "{tmp}/x", "--truncation", "-1"], "--truncation"),
+    (["sample", "--out", "{tmp}/x", "--truncation-cutoff", "-2"], "--truncation-cutoff must be at least 0"),
     (["sample", "--out", "{tmp}/afile/sub"], "cannot write"),
     (["sample", "--out", "/proc/forbidden"], "cannot write"),
     (["verify", "{tmp}/nothing-here"], "no dataset index"),

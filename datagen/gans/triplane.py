@@ -282,6 +282,14 @@ class TriPlaneGenerator(nn.Module):
                                             self.render_settings(deterministic), generator)
         return self.compose(ws, feats, depth, weights, resolution, background, noise_mode, generator)
 
+    def raw_rgb(self, feature_image, w):
+        """Feature image (N, C, H, W), signed as the decoder's features are after compose's scaling ->
+        raw RGB (N, 3, H, W): ToRGB (a 1x1 convolution modulated by ``w``, (N, 512)) where the
+        generator has one (PanoHead, SphereHead), else the first 3 channels (EG3D)."""
+        if getattr(self, "torgb", None) is not None:
+            return self.torgb(feature_image, w, fused_modconv=False)
+        return feature_image[:, :3]
+
     def compose(self, ws, feats, depth, weights, resolution, background=None, noise_mode="const", generator=None):
         """Rendered rays (..., C) / (..., 1) of n = numel / R^2 images -> raw image, mask, depth, final image.
 
@@ -310,10 +318,7 @@ class TriPlaneGenerator(nn.Module):
                     bcg = bcg.repeat_interleave(n // bcg.shape[0], dim=0)
                 feature_image = feature_image + (1 - weights_image) * bcg
             out["image_mask"] = weights_image * (1 + 2 * 0.001) - 0.001
-        if getattr(self, "torgb", None) is not None:
-            rgb = self.torgb(feature_image, ws[:, -1], fused_modconv=False)
-        else:
-            rgb = feature_image[:, :3]
+        rgb = self.raw_rgb(feature_image, ws[:, -1])
         out["feature_image"] = feature_image
         out["image_raw"] = rgb
         out["image"] = self.superresolution(rgb, feature_image, ws, noise_mode=rk.get("superresolution_noise_mode", "none"),
