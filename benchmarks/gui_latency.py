@@ -1,7 +1,7 @@
 """Review-window latency as a reviewer sees it: from a key press to the changed frame on the screen.
 
 Starts a virtual X display (Xvfb, 1920x1080), opens ``label-tool review`` on it as a reviewer
-would (its own process, a real window) and types keys through the XTEST extension, the way
+would (its own process, a real pyvista window) and types keys through the XTEST extension, the way
 xdotool types them. Each key is timed from the moment it is sent to the X server to the last
 frame the window draws in answer (X DAMAGE events, until the window stays still for 150 ms);
 the window's pixels are read before and after to check that the frame did change. Keys come at
@@ -12,7 +12,10 @@ Measured, per view size (128 px and 512 px views, 32 per subject): opening the s
 starting the command to the first complete frame), next subject, a verdict (event fsynced, next
 subject shown), 3D on and off, entering triage, a triage page change (to a page not seen yet)
 and a triage commit (40 events, next page shown). Reports p50/p95 against the goals and the
-reviewer throughput they imply.
+reviewer throughput they imply. The start-up is also taken apart, in fresh processes on the same
+display: importing pyvista, its plotting package (which imports matplotlib), the window module,
+making the plotter and its window (with and without pyvista's own probe of the display, which the
+window skips) and drawing the first, empty frame.
 
 Datasets: a few procedural subjects are rendered per size and their bytes repeated under new
 subject ids (1,000 subjects at 128 px; fewer at 512 px, whose subjects are 18 MB each); the
@@ -49,7 +52,7 @@ from datagen.shards import INDEX_NAME, ShardWriter, dumps, iter_tar_samples, rea
 
 SCREEN = (1920, 1080)
 GOALS_MS = {"next": 150, "verdict": 150, "triage_page": 300, "view3d_on": 500}
-GOAL_OPEN_S = 2.0
+GOAL_OPEN_S = 3.0        # opening a 1,000-subject shard, pyvista's start-up included
 QUIET_S = 0.15           # a frame is complete when the window stays still this long
 JUDGE_S = 1.0            # assumed: a reviewer decides on one subject in about a second (review mode)
 SCAN_PAGE_S = 10.0       # assumed: scanning a triage page of 40 and marking its few bad cells
@@ -324,6 +327,46 @@ def session(dataset: Path, display: str, counts, shots: Path, tag: str) -> dict:
     return out
 
 
+# The start-up, taken apart: each run a fresh process on the benchmark's display. ``probe`` 0 or 1:
+# whether pyvista probes the display itself (the window sets ALLOW_PLOTTING to skip that probe).
+STARTUP_PROBE = """
+import json, sys, time
+t = [time.perf_counter()]
+import pyvista
+t.append(time.perf_counter())
+import pyvista.plotting
+t.append(time.perf_counter())
+from labeling_tool.review import window
+t.append(time.perf_counter())
+if sys.argv[1] == "1":
+    settings = window.plotter_settings
+    window.plotter_settings = lambda off: {k: v for k, v in settings(off).items() if k != "ALLOW_PLOTTING"}
+display = window.XDisplay()
+win = window.Window(False, (1920, 1080), "start-up probe")
+t.append(time.perf_counter())
+win.show()
+t.append(time.perf_counter())
+win.close()
+display.close()
+print(json.dumps([b - a for a, b in zip(t, t[1:])]))
+"""
+STARTUP_PARTS = ("import pyvista (core)", "import pyvista.plotting (matplotlib)", "import the window module",
+                 "the plotter and its X window", "the first frame (empty, 1920x1080)")
+
+
+def startup(display: str, runs: int) -> dict:
+    """Seconds of each part of the window's start-up ({"window": [[part, ...] per run], "with_probe": ...})."""
+    env = dict(os.environ, DISPLAY=display, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    env.pop("VTK_DEFAULT_OPENGL_WINDOW", None)
+    out = {"window": [], "with_probe": []}
+    for _ in range(runs):
+        for kind, flag in (("window", "0"), ("with_probe", "1")):
+            done = subprocess.run([sys.executable, "-c", STARTUP_PROBE, flag], env=env, capture_output=True, text=True,
+                                  timeout=120, check=True)
+            out[kind].append(json.loads(done.stdout.strip().splitlines()[-1]))
+    return out
+
+
 def save_png(pixels: np.ndarray, path: Path):
     from PIL import Image
 
@@ -350,7 +393,8 @@ def summarize(result: dict) -> dict:
 
 def render(results: dict) -> str:
     lines = ["# Review window latency: key to changed frame", "",
-             f"Window {SCREEN[0]}x{SCREEN[1]} on Xvfb (software OpenGL), one `label-tool review` process; keys sent "
+             f"Window {SCREEN[0]}x{SCREEN[1]} on Xvfb (software OpenGL), one `label-tool review` process (its window a "
+             "pyvista plotter); keys sent "
              "through XTEST (as xdotool sends them), frames seen through X DAMAGE events; a frame is complete when "
              f"the window stays still {QUIET_S * 1e3:.0f} ms (that wait is not counted).", ""]
     m = results["machine"]
@@ -395,6 +439,21 @@ def render(results: dict) -> str:
             f"Session: exit code {r['exit_code']}, {r['events']} events written; `{r['stdout']}`."]) + [""]
         lines += [f"Screenshots: gui_latency_{tag}_review.png, gui_latency_{tag}_3d.png, "
                   f"gui_latency_{tag}_triage.png.", ""]
+    if "startup" in results:
+        st = results["startup"]
+        parts = np.median(np.array(st["window"]), axis=0)
+        probe = np.median(np.array(st["with_probe"]), axis=0)
+        lines += ["## Start-up", "",
+                  f"Medians of {len(st['window'])} fresh processes on the same display (1-minute load average "
+                  f"{st['load_average']:.2f}); a second column with pyvista's own probe of the display, which the "
+                  "window skips (ALLOW_PLOTTING: the display was checked already, or EGL renders off-screen). "
+                  "pyvista's plotting package imports matplotlib (pyplot included) as it loads, for its colour maps: "
+                  "that import is part of every pyvista window, paid once per session (and the first import after "
+                  "matplotlib is installed also builds its font cache, once per user).", ""]
+        lines += table(["part", "s", "with pyvista's probe, s"],
+                       [[name, f"{a:.2f}", f"{b:.2f}"] for name, a, b in zip(STARTUP_PARTS, parts, probe)]
+                       + [["total", f"{parts.sum():.2f}", f"{probe.sum():.2f}"]])
+        lines += [""]
     lines += ["## Notes", ""] + bullets([
         "p95 of 30 keys is close to their second-largest value: a rough tail. The machine is shared (load "
         "averages above, against 2 CPUs); timings on a quiet machine are lower.",
@@ -421,6 +480,8 @@ def measure(quick: bool, work: Path, command: str) -> dict:
                "machine": machine_info(), "sessions": {}}
     xvfb, display = start_xvfb()
     try:
+        print("start-up, taken apart ...", flush=True)
+        results["startup"] = dict(startup(display, 2 if quick else 5), load_average=load_average())
         for resolution, counts in CONFIGS.items():
             if quick:
                 counts = (counts[0] // 4, 10, 10, 2, 2)

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytest.importorskip("vtkmodules", reason="the review window needs VTK")
+pytest.importorskip("pyvista", reason="the review window needs pyvista")
 
 from PIL import Image, ImageDraw, ImageFont  # noqa: E402
 
@@ -321,13 +321,9 @@ def test_the_surface_occludes_what_is_behind_it():
     assert mesh.GetNumberOfPolys() == len(arrays[1]) and mesh.GetNumberOfPoints() == len(arrays[0])
     for z, want in ((-3.0, 2), (3.0, 0)):   # from behind only the back camera's blue, from the front red
         win = Window(True, (200, 200), "test")
-        win.renderer.SetBackground(0, 0, 0)
-        win.renderer.AddActor(surface_actor(mesh))
-        cam = win.renderer.GetActiveCamera()
-        cam.SetPosition(0, 0, z)
-        cam.SetFocalPoint(0, 0, 0)
-        cam.SetViewUp(0, 1, 0)
-        win.renderer.ResetCameraClippingRange()
+        win.plotter.set_background("black")
+        surface_actor(win.plotter, mesh)
+        win.plotter.camera_position = [(0, 0, z), (0, 0, 0), (0, 1, 0)]
         win.render()
         img = win.screenshot().astype(int)
         win.close()
@@ -398,6 +394,30 @@ def test_3d_view_is_a_surface_framed_on_the_head(make_app):
     assert "drag rotates" in app.hud_lines[3][0]
     press(app, "Right")                      # moving on leaves the 3D view
     assert app.mode == "review" and app.pos == 1 and app._surface is None
+
+
+def test_verdicts_and_undo_typed_in_the_3d_view(make_app, tmp_path):
+    """A verdict in 3D is saved and the next subject's views come (on the last subject the 3D view
+    stays); z with nothing to undo leaves the head on screen, with the notice; an undo goes to the
+    subject whose verdict it cancels."""
+    app = make_app(window_size=(640, 480))
+    press(app, "v")
+    top = app._layout.top                    # the heads-up block above, the head below
+    head = app.screenshot()
+    press(app, "z")
+    assert app.mode == "3d" and app._surface is not None and app.notice == ("warn", "nothing to undo")
+    shot = app.screenshot()
+    assert np.array_equal(shot[top:], head[top:])                 # the head, as it was
+    assert (np.abs(head[top:].astype(int) - BACKGROUND).sum(-1) > 40).mean() > 0.05
+    assert (np.abs(shot[:top].astype(int) - head[:top]).sum(-1) > 30).sum() > 50   # the notice, redrawn
+    press(app, "2")
+    assert written(tmp_path) == [(S0, "bad", ("broken_back",))]
+    assert (app.mode, app.pos, app._surface, app._grid.visible()) == ("review", 1, None, True)
+    press(app, "v z")
+    assert written(tmp_path)[-1] == (S0, "undo", ()) and (app.mode, app.pos, app._grid.visible()) == ("review", 0, True)
+    press(app, "Right Right v g")            # the last subject: saved, and its head stays on screen
+    assert written(tmp_path)[-1] == (S2, "good", ()) and app.mode == "3d" and app.notice[0] == "saved"
+    assert (np.abs(app.screenshot()[top:].astype(int) - BACKGROUND).sum(-1) > 40).mean() > 0.05
 
 
 # ------------------------------------------------------------------------------------------------

@@ -1,8 +1,8 @@
 """The review window and the session behind it: a person looks at generated heads and types verdicts.
 
 :mod:`.session` (the queue, verdicts, undo, triage pages and commits; no window) is imported here
-at once; the window's names (VTK) are imported when first asked for, so that the session and the
-queue's items need no VTK.
+at once; the window's names (pyvista) are imported when first asked for, so that the session and
+the queue's items need neither pyvista nor VTK.
 """
 from importlib import import_module
 

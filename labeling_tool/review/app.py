@@ -1,4 +1,4 @@
-"""The review window (VTK): one subject's views as a grid, a triage grid of many subjects, a 3D surface.
+"""The review window (pyvista): one subject's views as a grid, a triage grid of many subjects, a 3D surface.
 
 Review mode shows every view of one subject, each labelled with its yaw and pitch, under a
 heads-up block (subject, progress, verdict, pre-flags, the confirmation of the last action, the
@@ -91,11 +91,11 @@ class ReviewApp:
     # -- actors ---------------------------------------------------------------------------------------
     def _make_actors(self):
         """Three 2D images (the grid, the heads-up block, the help panel) and the triage cursor."""
-        renderer = self.window.renderer
-        self._grid = ImageLayer(renderer)
-        self._cursor = Outline(renderer, COLORS["cursor"], 3)
-        self._hud = ImageLayer(renderer)
-        self._help = ImageLayer(renderer)
+        plotter = self.window.plotter
+        self._grid = ImageLayer(plotter)
+        self._cursor = Outline(plotter, COLORS["cursor"], 3)
+        self._hud = ImageLayer(plotter)
+        self._help = ImageLayer(plotter)
         self._help_size = None
         self._hud_key = self._hud_pixels = None
         self._surface = None
@@ -147,11 +147,9 @@ class ReviewApp:
                     "Prior": lambda: self.turn_page(-1), "r": self.reframe_3d, "Escape": self.key_escape}
         for k, reason in REASON_KEYS.items():
             bindings[k] = (lambda r=reason: self.key_bad(r))
-        self.window.keys = {key: self._guarded(key, fn) for key, fn in bindings.items()}
-        interactor = self.window.interactor
-        interactor.AddObserver("LeftButtonPressEvent", lambda *_: self._on_click())
-        interactor.AddObserver("ConfigureEvent", lambda *_: self._on_resize())
-        self.window.set_style("grid")
+        self.window.bind({key: self._guarded(key, fn) for key, fn in bindings.items()})
+        self.window.observe("LeftButtonPressEvent", self._on_click)
+        self.window.observe("ConfigureEvent", self._on_resize)
 
     def _guarded(self, key: str, fn):
         """A key handler whose one-line errors (an unreadable subject) become the heads-up notice."""
@@ -253,10 +251,8 @@ class ReviewApp:
             self.refresh()
 
     def undo(self):
-        if self.mode == "3d":
-            self._leave_3d()
         self.notice, where = self.session.undo()
-        if where is None:
+        if where is None:   # nothing undone: the view stays as it is (the 3D view too), with the notice
             self.refresh()
         elif self.mode == "triage":
             page = self.triage_page
@@ -343,9 +339,8 @@ class ReviewApp:
             return
         mesh = polydata(*arrays)
         self._grid.hide()
-        self._surface = surface_actor(mesh)
-        self.window.renderer.AddActor(self._surface)
-        self._surface_bounds = mesh.GetBounds()
+        self._surface = surface_actor(self.window.plotter, mesh)
+        self._surface_bounds = mesh.bounds
         self.window.set_style("3d")
         self.mode = "3d"
         self.reframe_3d()
@@ -357,12 +352,12 @@ class ReviewApp:
         """Look at the head from the front (+z), the whole surface in view."""
         if self.mode != "3d":
             return
-        frame_front(self.window.renderer, self._surface_bounds)
+        frame_front(self.window.plotter, self._surface_bounds)
         self.refresh()
 
     def _leave_3d(self):
         if self._surface is not None:
-            self.window.renderer.RemoveActor(self._surface)
+            self.window.plotter.remove_actor(self._surface, reset_camera=False, render=False)
         self._surface = None
         self.window.set_style("grid")
         self.mode = "review"
@@ -463,7 +458,7 @@ class ReviewApp:
     def _on_click(self):
         if self.mode != "triage":
             return
-        x, y = self.window.interactor.GetEventPosition()
+        x, y = self.window.event_position()
         i = self._layout.index_at(x, self._layout.height - 1 - y)
         if i is not None and i < len(self.session.page_items()):
             self.quit_armed = False
@@ -480,11 +475,9 @@ class ReviewApp:
 
     def run(self):
         """Open the window and hand control to the reviewer until the window is closed or Escape."""
-        self.window.show()
-        self.window.set_style("3d" if self.mode == "3d" else "grid")
         self._deferred = False
-        if not self._on_resize():
-            self.refresh()      # the first frame
+        self.window.show()      # the first frame, everything in place
+        self._on_resize()       # drawn again only when the window did not come out at the size asked
         self.window.loop(self.display)
         self.close()
 

@@ -237,13 +237,15 @@ class ReviewSession:
         writes, before, skipped = [], {}, 0
         for item in self.page_items():
             saved = self.log.verdict(item.subject)
-            action, reasons = self.pending.pop(item.subject, None) or (("good", ()) if saved is None else (None, ()))
+            action, reasons = self.pending.get(item.subject) or (("good", ()) if saved is None else (None, ()))
             if action is not None and (saved is None or (saved.action, saved.reasons) != (action, reasons)):
                 writes.append((item.subject, item.shard, action, reasons))
                 before[item.subject] = saved
             elif saved is not None and saved.action == "skip":
                 skipped += 1  # decide later: a commit leaves it for the reviewer, unreviewed
-        self.log.append_all(writes)  # one fsync for the page
+        self.log.append_all(writes)  # one fsync for the page; a failed write keeps the page's changes pending
+        for item in self.page_items():
+            self.pending.pop(item.subject, None)
         for subject, saved in before.items():
             self._count(subject, saved)
         bad = sum(1 for w in writes if w[2] == "bad")

@@ -2,10 +2,7 @@
 from __future__ import annotations
 
 import numpy as np
-from vtkmodules.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray
-from vtkmodules.vtkCommonCore import vtkPoints
-from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
-from vtkmodules.vtkRenderingCore import vtkActor, vtkPolyDataMapper
+import pyvista as pv
 
 from datagen.cameras import depth_points
 from datagen.errors import DatasetError
@@ -74,32 +71,19 @@ def surface_mesh(views, max_grid: int = 80, slope: float = 2.0, min_facing: floa
             np.concatenate(colors).astype(np.uint8))
 
 
-def polydata(points: np.ndarray, triangles: np.ndarray, colors: np.ndarray) -> vtkPolyData:
-    """A VTK triangle mesh with RGB point colours (array "rgb")."""
-    cells = vtkCellArray()
-    cells.SetData(numpy_to_vtkIdTypeArray(np.arange(0, 3 * len(triangles) + 1, 3), deep=True),
-                  numpy_to_vtkIdTypeArray(triangles.ravel(), deep=True))
-    pts = vtkPoints()
-    pts.SetData(numpy_to_vtk(points, deep=True))
-    rgb = numpy_to_vtk(colors, deep=True)
-    rgb.SetName("rgb")
-    mesh = vtkPolyData()
-    mesh.SetPoints(pts)
-    mesh.SetPolys(cells)
-    mesh.GetPointData().SetScalars(rgb)
+def polydata(points: np.ndarray, triangles: np.ndarray, colors: np.ndarray) -> pv.PolyData:
+    """A triangle mesh with RGB point colours (point array "rgb", active)."""
+    mesh = pv.PolyData.from_regular_faces(points, triangles)
+    mesh.point_data.set_array(colors, "rgb")
+    mesh.point_data.active_scalars_name = "rgb"
     return mesh
 
 
-def surface_actor(mesh: vtkPolyData) -> vtkActor:
-    """The surface drawn with its own colours, unlit (the images carry their shading)."""
-    mapper = vtkPolyDataMapper()
-    mapper.SetInputData(mesh)
-    mapper.SetColorModeToDirectScalars()
-    mapper.SetScalarModeToUsePointData()
-    actor = vtkActor()
-    actor.SetMapper(mapper)
-    actor.GetProperty().LightingOff()
-    return actor
+def surface_actor(plotter: pv.Plotter, mesh: pv.PolyData) -> pv.Actor:
+    """Add the surface to ``plotter``, drawn with its own colours, unlit (the images carry their
+    shading); the camera and the frame are left as they are."""
+    return plotter.add_mesh(mesh, scalars="rgb", rgb=True, lighting=False, show_scalar_bar=False,
+                            reset_camera=False, render=False)
 
 
 def subject_surface(reader, item, meta: dict, rgb_views: list):
@@ -119,15 +103,13 @@ def subject_surface(reader, item, meta: dict, rgb_views: list):
     return surface_mesh(views)
 
 
-def frame_front(renderer, bounds) -> None:
-    """Point ``renderer``'s camera at a surface with ``bounds`` from the front (+z), all of it in view."""
+def frame_front(plotter: pv.Plotter, bounds) -> None:
+    """Point ``plotter``'s camera at a surface with ``bounds`` from the front (+z), all of it in view
+    (a 30 degree view angle, perspective, y up)."""
     b = bounds
     center = np.array([(b[0] + b[1]) / 2, (b[2] + b[3]) / 2, (b[4] + b[5]) / 2])
     radius = 0.5 * np.linalg.norm([b[1] - b[0], b[3] - b[2], b[5] - b[4]])
-    cam = renderer.GetActiveCamera()
-    cam.ParallelProjectionOff()
-    cam.SetViewAngle(30.0)
-    cam.SetFocalPoint(*center)
-    cam.SetPosition(*(center + np.array([0.0, 0.0, 1.05 * radius / np.sin(np.radians(15.0))])))
-    cam.SetViewUp(0.0, 1.0, 0.0)
-    renderer.ResetCameraClippingRange()
+    plotter.camera.parallel_projection = False
+    plotter.camera.view_angle = 30.0
+    eye = center + np.array([0.0, 0.0, 1.05 * radius / np.sin(np.radians(15.0))])
+    plotter.camera_position = [tuple(eye), tuple(center), (0.0, 1.0, 0.0)]   # resets the clipping range too
