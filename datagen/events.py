@@ -21,6 +21,7 @@ raise.
 """
 from __future__ import annotations
 
+import errno
 import json
 import os
 import re
@@ -210,6 +211,7 @@ class EventLog:
         self.reviewer = check_reviewer(reviewer)
         self.path = log_path(labels_dir, reviewer)
         self._created = not self.path.exists()
+        self.failed_writes = 0  # writes that failed (each taken back and reported as a UserError)
         # the folders this log makes, deepest first, so that a session that writes nothing leaves none
         self._made_dirs = [d for d in (self.path.parent, *self.path.parent.parents) if not d.exists()]
         problem = log_file_problem(self.path) if self.path.exists() else None
@@ -218,7 +220,7 @@ class EventLog:
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self.events, self.problems = read_log(self.path, reviewer) if self.path.exists() else ([], [])
-            self._file = open(self.path, "ab")
+            self._file = open(self.path, "ab", buffering=0)
         except OSError as e:
             raise UserError(f"cannot write the review log {self.path}: {e.strerror}") from None
         if self.path.stat().st_size and not self.path.read_bytes().endswith(b"\n"):
@@ -227,9 +229,24 @@ class EventLog:
         self._verdicts = Verdicts(self.events)
 
     def _write(self, data: bytes) -> None:
-        self._file.write(data)
-        self._file.flush()
-        os.fsync(self._file.fileno())
+        """Append ``data`` and fsync; a write that fails (a full disk) is taken back whole, so the log
+        ends with the last event that was saved, and becomes a UserError naming the log."""
+        fd = self._file.fileno()
+        end = os.fstat(fd).st_size
+        try:
+            view = memoryview(data)
+            while view:
+                view = view[self._file.write(view):]
+            os.fsync(fd)
+        except OSError as e:
+            try:
+                os.ftruncate(fd, end)
+            except OSError:
+                pass  # a partial line stays; the next read reports it, as after a crash
+            self.failed_writes += 1
+            why = "disk full" if e.errno == errno.ENOSPC else (e.strerror or str(e))
+            raise UserError(f"cannot write the review log {self.path}: {why}; the verdicts saved before this one "
+                            "are kept, this one was not saved") from None
 
     def append(self, subject: str, shard: str, action: str, reasons=()) -> Event:
         return self.append_all([(subject, shard, action, reasons)])[0]
@@ -240,11 +257,12 @@ class EventLog:
         for subject, shard, action, reasons in entries:
             if action not in ACTIONS:
                 raise ValueError(f"unknown action {action!r}")
-            self.seq += 1
-            events.append(Event(self.seq, datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
-                                self.reviewer, subject, shard, action, tuple(reasons)))
+            now = datetime.now(timezone.utc).isoformat(timespec="milliseconds")
+            events.append(Event(self.seq + len(events) + 1, now, self.reviewer, subject, shard, action,
+                                tuple(reasons)))
         if events:
             self._write("".join(e.to_json() + "\n" for e in events).encode())
+            self.seq = events[-1].seq
         for event in events:
             self.events.append(event)
             self._verdicts.apply(event)

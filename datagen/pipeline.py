@@ -25,7 +25,9 @@ from .files import LockBusy, atomic_write, byte_lock
 from .generators import GANS, make_generator
 from .generators.base import STREAM_CAMERAS, subject_rng
 from .generators.gan import NOT_RECORDED
-from .shards import (FORMAT, INDEX_NAME, ShardWriter, dumps, encode_subject, is_complete,
+from .raycluster import ray_connection
+from .shapes import check_resolution, encode_mesh, extract_shape
+from .shards import (FORMAT, INDEX_NAME, ShardWriter, dumps, encode_subject, is_complete, job_shards,
                      read_index, remove_partial, shard_name, subject_id, tar_path, view_name)
 
 DEPTH_MEANING = "distance along the unit ray from the camera centre, world units; 0 where alpha is 0"
@@ -48,6 +50,8 @@ class JobSpec:
     seed: int = 0
     shard_size: int = 8
     software: dict = field(default_factory=dict)
+    save_shape: int = 0  # grid resolution of each subject's stored surface (0: none; datagen/shapes.py)
+    shape_level: float | None = None  # GANs: the surface's raw density level (None: the originals' 10)
 
     @property
     def num_shard_files(self) -> int:
@@ -59,9 +63,12 @@ class JobSpec:
     def settings(self) -> dict:
         """What the index records: the job less its output folder and the generator options that
         only place or split the work (device, memory budget), so a dataset is the same, and resumes,
-        wherever it runs."""
+        wherever it runs. The shape settings appear only when shapes are stored (a dataset without
+        them has the index it had before shapes existed)."""
         s = asdict(self)
         s.pop("out")
+        if not self.save_shape:
+            del s["save_shape"], s["shape_level"]
         s["generator_options"] = {k: v for k, v in s["generator_options"].items() if k not in NOT_RECORDED}
         return s
 
@@ -95,6 +102,16 @@ def validate(spec: JobSpec) -> None:
     for ok, message in checks:
         if not ok:
             raise UserError(message)
+    if spec.save_shape:
+        check_resolution(spec.save_shape, "--save-shape")
+    if spec.shape_level is not None:
+        if not spec.save_shape:
+            raise UserError("--shape-level: only with --save-shape")
+        if spec.gan not in GANS:
+            raise UserError("--shape-level: only for the GAN generators (the procedural surface is the zero level "
+                            "of its signed distance)")
+        if not np.isfinite(spec.shape_level):
+            raise UserError("--shape-level must be a finite number")
 
 
 def make_index(spec: JobSpec, generator_description: dict) -> dict:
@@ -176,7 +193,12 @@ def _write_shard(spec: JobSpec, shard: int, progress) -> dict:
     try:
         for index in spec.shard_subjects(shard):
             metadata, out, subject = render_subject(spec, index)
-            members = encode_subject(metadata, out.rgb, out.alpha, out.depth, subject.arrays)
+            shape = None
+            if spec.save_shape:
+                mesh = extract_shape(_generator(spec), subject, spec.save_shape, spec.shape_level)
+                metadata["shape"] = mesh.record
+                shape = encode_mesh(mesh)
+            members = encode_subject(metadata, out.rgb, out.alpha, out.depth, subject.arrays, shape)
             writer.add_subject(metadata["subject_id"], members, subject.truth or None)
             if progress:
                 progress(len(out.rgb))
@@ -298,42 +320,12 @@ def _run_ray(spec: JobSpec, shards: list[int], address: str | None, threads: int
     """Run the shard tasks on Ray: the cluster this process is already connected to, else the one
     at ``address`` / RAY_ADDRESS, else a private local instance. Only a connection or instance made
     here is closed here. ``gpus``: each task's share of a GPU when rendering on CUDA, else None."""
-    try:
-        import ray
-    except ImportError:
-        raise UserError("the ray backend needs the optional extra: pip install 'panolam-toolkit[ray]'") from None
-    import logging
+    with ray_connection(address) as ray:
+        _run_ray_tasks(ray, spec, shards, threads, gpus, bar)
 
-    ray_logger = logging.getLogger("ray")
-    level = ray_logger.level
-    started = not ray.is_initialized()
-    if started:
-        target = address or os.environ.get("RAY_ADDRESS") or ""
-        host, sep, port = target.split("://", 1)[-1].rpartition(":")
-        if sep and port.isdigit():
-            # Ray itself keeps retrying an address that does not answer, for many minutes.
-            import socket
 
-            try:
-                socket.create_connection((host.strip("[]") or "127.0.0.1", int(port)), timeout=10).close()
-            except OSError as e:
-                raise UserError(f"cannot reach the Ray cluster at {target}: {e.strerror or e}") from None
-        # A local instance started here reports no usage statistics, has no dashboard UI and keeps
-        # its workers' output and its own informational messages off the terminal.
-        set_usage_env = "RAY_USAGE_STATS_ENABLED" not in os.environ
-        if set_usage_env:
-            os.environ["RAY_USAGE_STATS_ENABLED"] = "0"
-        try:
-            ray.init(address=address, include_dashboard=False, log_to_driver=False,
-                     logging_level=logging.ERROR)
-        except Exception as e:
-            ray.shutdown()  # whatever a failed start left running
-            ray_logger.setLevel(level)
-            raise UserError(f"cannot start or reach Ray ({target or 'local'}): "
-                            f"{str(e).splitlines()[0] if str(e) else type(e).__name__}") from e
-        finally:
-            if set_usage_env:
-                os.environ.pop("RAY_USAGE_STATS_ENABLED", None)
+def _run_ray_tasks(ray, spec: JobSpec, shards: list[int], threads: int, gpus: float | None, bar) -> None:
+    """Submit one task per shard and wait for them; after an error or an interrupt the rest are cancelled."""
     pending: dict = {}
     try:
         options = ray_task_options(ray.nodes(), threads, gpus)
@@ -360,9 +352,6 @@ def _run_ray(spec: JobSpec, shards: list[int], address: str | None, threads: int
                 ray.cancel(ref)
             except Exception:
                 pass
-        if started:
-            ray.shutdown()
-            ray_logger.setLevel(level)
 
 
 class _NullBar:
@@ -405,8 +394,8 @@ def _publish_index(out: Path, index: dict) -> None:
         # Another job of the same dataset may have written the index; the software version
         # may differ (each subject records its own), nothing else may.
         existing = read_index(out)
-        differing = sorted(k for k in index["settings"]
-                           if k != "software" and existing["settings"].get(k) != index["settings"][k])
+        differing = sorted(k for k in set(index["settings"]) | set(existing["settings"])
+                           if k != "software" and existing["settings"].get(k) != index["settings"].get(k))
         if differing or existing["generator"] != index["generator"]:
             what = ", ".join(differing) or "generator configuration"
             raise UserError(f"{out} already holds a dataset made with other settings ({what}); "
@@ -428,13 +417,11 @@ def run_sample(spec: JobSpec, *, workers: int | str = 1, backend: str = "local",
     Returns a summary: shards written and skipped, subjects in this job's shards, images, seconds.
     """
     validate(spec)
-    if num_shards < 1 or not 0 <= shard_index < num_shards:
-        raise UserError("--shard-index must satisfy 0 <= shard-index < num-shards")
     if workers != "auto" and not (isinstance(workers, int) and workers >= 1):
         raise UserError("--workers must be auto or at least 1")
     if backend not in ("local", "ray"):
         raise UserError(f"unknown backend {backend!r}; choose local or ray")
-    mine = [s for s in range(spec.num_shard_files) if s % num_shards == shard_index]
+    mine = job_shards(spec.num_shard_files, shard_index, num_shards)
     requested = requested_device(spec)
     devices = worker_devices(requested, workers, max(1, min(os.cpu_count() or 1, len(mine))))
     gpus = _ray_gpus(backend, requested, devices[0], gpus_per_task)

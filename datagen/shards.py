@@ -8,11 +8,14 @@ A dataset folder holds::
                                each subject's byte range [start, end) in the tar (random access)
     truth/shard-000000.json    ground truth reviewers must not see (e.g. injected defects)
     .datagen.lock              empty; runs writing into the folder hold POSIX locks on its bytes
+    .verified-shards.json      the shards that passed :func:`check_shards`, by the stat of their
+                               tar and sidecar (readers skip re-checking them)
 
 Fields of a subject sample ``<id>``: ``<id>.json`` (metadata and provenance), and per view i
 ``<id>.vII.png`` (RGB, 8-bit), ``<id>.vII.mask.png`` (alpha, 8-bit), ``<id>.vII.depth.exr``
 (float32 distance along the ray, world units, 0 where alpha is 0), and ``<id>.<name>.npy`` for each
-numeric array the generator records (GANs: ``z``, ``w``, optionally ``planes`` in fp16).
+numeric array the generator records (GANs: ``z``, ``w``, optionally ``planes`` in fp16), and last,
+with ``datagen sample --save-shape``, ``<id>.shape.ply`` (the head surface, ``datagen/shapes.py``).
 
 A shard is complete only when its sidecar exists: the tar is written under a temporary name,
 flushed and renamed, then the sidecar is written the same way. Tars are byte-reproducible (fixed
@@ -31,12 +34,13 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from .errors import DatasetError
+from .errors import DatasetError, UserError
 from .files import atomic_write, read_json, require, sha256_file
 
 FORMAT = "panolam-heads/1"
 INDEX_NAME = "index.json"
 TRUTH_DIR = "truth"
+SHAPE_FIELD = "shape.ply"  # a subject's head surface, when the dataset stores shapes
 
 
 def subject_id(index: int) -> str:
@@ -57,6 +61,14 @@ def shard_index(name: str) -> int:
     if prefix != "shard" or not number.isdigit():
         raise DatasetError(f"{name!r} is not a shard name (shard-NNNNNN)")
     return int(number)
+
+
+def job_shards(num_shard_files: int, job: int, jobs: int) -> list[int]:
+    """The shard numbers array job ``job`` of ``jobs`` (--shard-index K --num-shards N) handles:
+    those s with s % jobs == job, of 0 .. num_shard_files - 1. A UserError when not 0 <= K < N."""
+    if jobs < 1 or not 0 <= job < jobs:
+        raise UserError("--shard-index must satisfy 0 <= shard-index < num-shards")
+    return [s for s in range(num_shard_files) if s % jobs == job]
 
 
 def tar_path(root, i) -> Path:
@@ -125,8 +137,9 @@ def decode_npy(data: bytes) -> np.ndarray:
 
 
 def encode_subject(metadata: dict, rgb: np.ndarray, alpha: np.ndarray, depth: np.ndarray,
-                   arrays: dict | None = None) -> list[tuple[str, bytes]]:
-    """One subject's tar members in order: metadata json, arrays (sorted by name), then per view rgb, mask, depth."""
+                   arrays: dict | None = None, shape: bytes | None = None) -> list[tuple[str, bytes]]:
+    """One subject's tar members in order: metadata json, arrays (sorted by name), per view rgb, mask,
+    depth, then the shape's PLY bytes when given."""
     key = metadata["subject_id"]
     members = [(f"{key}.json", dumps(metadata))]
     members += [(f"{key}.{name}.npy", encode_npy(arrays[name])) for name in sorted(arrays or {})]
@@ -135,6 +148,8 @@ def encode_subject(metadata: dict, rgb: np.ndarray, alpha: np.ndarray, depth: np
         members.append((f"{key}.{v}.png", encode_png(to_uint8(rgb[i]))))
         members.append((f"{key}.{v}.mask.png", encode_png(to_uint8(alpha[i]))))
         members.append((f"{key}.{v}.depth.exr", encode_exr(depth[i])))
+    if shape is not None:
+        members.append((f"{key}.{SHAPE_FIELD}", shape))
     return members
 
 
@@ -381,13 +396,139 @@ def decode_sample(key: str, fields: dict, where="", views=None, depth: bool = Tr
     return SubjectSample(key, meta, rgb, alpha, depths, arrays)
 
 
+def find_shard(root, key: str) -> int:
+    """The number of the shard the dataset index puts subject ``key`` in; a DatasetError when none does."""
+    for shard in read_index(root)["shards"]:
+        if key in shard["subjects"]:
+            return shard_index(shard["name"])
+    raise DatasetError(f"{Path(root) / INDEX_NAME}: no subject {key} in this dataset")
+
+
 def read_subject(root, key: str) -> SubjectSample:
     """Read one subject by id through the dataset index and the shard's byte ranges."""
-    index = read_index(root)
-    for shard in index["shards"]:
-        if key in shard["subjects"]:
-            i = int(shard["name"].split("-")[1])
-            if not tar_path(root, i).exists():
-                raise DatasetError(f"{tar_path(root, i)}: shard holding {key} is missing (not generated yet?)")
-            return decode_sample(key, read_fields(root, i, key), str(tar_path(root, i)))
-    raise DatasetError(f"{Path(root) / INDEX_NAME}: no subject {key} in this dataset")
+    i = find_shard(root, key)
+    if not tar_path(root, i).exists():
+        raise DatasetError(f"{tar_path(root, i)}: shard holding {key} is missing (not generated yet?)")
+    return decode_sample(key, read_fields(root, i, key), str(tar_path(root, i)))
+
+
+# ----------------------------------------------------------------------------------------------
+# The check readers run before they rely on shards (pre-flags, manifest compilation, training)
+
+SHARD_CHECKS = ".verified-shards.json"  # in the dataset folder: the shards that passed check_shards
+_CHECKS = "size+sha256+layout/1"  # what a remembered pass vouches for
+
+
+def tar_layout(path) -> list[tuple[str, int, int]]:
+    """(subject, start, end) of each run of members sharing a key, in tar order, from the member
+    headers alone (tarfile seeks past the data): the byte range [start, end) a writer records, from
+    the first member's header to the end of the last member's 512-byte-padded data."""
+    runs: list[list] = []
+    try:
+        with tarfile.open(path, "r:") as tar:
+            for m in tar:
+                key = m.name.partition(".")[0]
+                end = m.offset_data + -(-m.size // tarfile.BLOCKSIZE) * tarfile.BLOCKSIZE
+                if runs and runs[-1][0] == key:
+                    runs[-1][2] = end
+                else:
+                    runs.append([key, m.offset, end])
+    except (tarfile.TarError, EOFError, OSError) as e:
+        raise DatasetError(f"{path}: corrupt or truncated shard ({e})") from None
+    return [tuple(r) for r in runs]
+
+
+def _first_difference(got: list, want: list, where: str) -> str:
+    for i, (a, b) in enumerate(zip(got, want)):
+        if a != b:
+            return f"{a} as subject {i} where {where} has {b}"
+    return f"{len(got)} subjects where {where} has {len(want)}"
+
+
+def layout_problem(root, i: int, side: dict, subjects: list) -> str | None:
+    """The first way shard ``i``'s sidecar disagrees with the dataset index (``subjects``: the ids the
+    index lists for it) or with its tar's member headers (each subject's key and byte range), as one
+    line naming the file; None when they agree."""
+    tar, side_path = tar_path(root, i), sidecar_path(root, i)
+    if side["subjects"] != subjects:
+        return f"{side_path}: lists {_first_difference(side['subjects'], subjects, 'the dataset index')}"
+    runs = tar_layout(tar)
+    keys = [k for k, _, _ in runs]
+    if keys != subjects:
+        return f"{tar}: holds {_first_difference(keys, subjects, 'its sidecar')}"
+    offsets = side["offsets"]
+    stray = sorted(set(offsets) - set(keys))
+    if stray:
+        return f"{side_path}: a byte range for {stray[0]}, which the shard does not hold"
+    for key, start, end in runs:
+        if offsets.get(key) != [start, end]:
+            return (f"{side_path}: byte range of {key} is {offsets.get(key)}, the tar holds it at "
+                    f"[{start}, {end})")
+    return None
+
+
+def check_shards(root, shards, index: dict | None = None) -> dict[int, str]:
+    """{shard number: its first problem, one line naming the file} for the shards numbered ``shards``
+    of a dataset that fail the check a reader needs before it trusts them; empty when all pass.
+
+    Checked: the sidecar is there and readable, the tar has the size and sha256 it records, the
+    sidecar lists the subjects the index (``index``, read when None) lists, and every subject's
+    byte range is where the tar's member headers put it (images are not decoded; ``datagen verify``
+    checks everything). A shard that passed is remembered in ``root/.verified-shards.json`` with the
+    size, inode, mtime and ctime of its tar and sidecar; while those stay the same it is not hashed
+    or walked again, so a second check costs a few ``stat`` calls (a write that restores the mtime
+    still changes the ctime). A dataset folder that cannot be written is checked in full every time.
+    """
+    root = Path(root)
+    index = read_index(root) if index is None else index
+    listed = {shard_index(sh["name"]): sh["subjects"] for sh in index["shards"]}
+    cache_path = root / SHARD_CHECKS
+    try:
+        cache = json.loads(cache_path.read_text())
+    except (OSError, ValueError):
+        cache = {}
+    cache = cache if isinstance(cache, dict) else {}
+    problems, passed = {}, {}
+    for i in sorted(set(shards)):
+        tar, side_path = tar_path(root, i), sidecar_path(root, i)
+        try:
+            side = read_sidecar(root, i, strict=True)
+        except DatasetError as e:
+            problems[i] = f"{e} (datagen verify {root} tells more)"
+            continue
+        if side is None:
+            problems[i] = f"{tar}: incomplete (no sidecar {side_path.name})"
+            continue
+        if not tar.exists():
+            problems[i] = f"{tar}: missing although its sidecar exists"
+            continue
+        if i not in listed:
+            problems[i] = f"{tar}: not a shard of the dataset index"
+            continue
+        if side["subjects"] != listed[i]:
+            problems[i] = layout_problem(root, i, side, listed[i])
+            continue
+        stamp = [_stat_stamp(tar), _stat_stamp(side_path), side["tar_sha256"], _CHECKS]
+        if cache.get(tar.name) == stamp:
+            passed[tar.name] = stamp
+        elif tar.stat().st_size != side["tar_bytes"]:
+            problems[i] = f"{tar}: size {tar.stat().st_size} differs from the sidecar's {side['tar_bytes']}"
+        elif sha256_file(tar) != side["tar_sha256"]:
+            problems[i] = f"{tar}: sha256 differs from the sidecar (corrupted)"
+        else:
+            problem = layout_problem(root, i, side, listed[i])
+            if problem:
+                problems[i] = problem
+            else:
+                passed[tar.name] = stamp
+    if any(cache.get(name) != stamp for name, stamp in passed.items()):
+        try:
+            atomic_write(cache_path, dumps({**cache, **passed}))
+        except OSError:
+            pass  # a read-only dataset: nothing remembered, the next check hashes again
+    return problems
+
+
+def _stat_stamp(path: Path) -> list[int]:
+    st = path.stat()
+    return [st.st_size, st.st_ino, st.st_mtime_ns, st.st_ctime_ns]

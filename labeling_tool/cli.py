@@ -34,10 +34,21 @@ def build_parser() -> OneLineParser:
                    help="re-rank the unreviewed subjects with a classifier fitted on the verdicts in this folder of "
                         "event logs (after about 20 or more verdicts with both good and bad ones)")
     a.add_argument("--skip-incomplete", action="store_true",
-                   help="score the complete shards and list the others (default: a missing or incomplete shard "
-                        "is an error)")
+                   help="score the complete shards and list the others (default: a missing, incomplete or "
+                        "damaged shard is an error)")
     a.add_argument("--top", type=int, default=10, metavar="N", help="print the N worst subjects")
     a.add_argument("--quiet", action="store_true", help="no progress bar")
+    a.add_argument("--shard-index", type=int, metavar="K",
+                   help="array jobs: measure only the shards s with s %% N == K and write their records to a "
+                        "slice file (score them all with --merge once every slice is done)")
+    a.add_argument("--num-shards", type=int, metavar="N", help="array jobs: how many slices (with --shard-index)")
+    a.add_argument("--merge", action="store_true",
+                   help="score the whole dataset from the slice files of --shard-index/--num-shards jobs")
+    a.add_argument("--out", metavar="DIR", help="folder of the slice files (default: DATASET/preflags-slices)")
+    a.add_argument("--backend", default="local", choices=("local", "ray"),
+                   help="local processes (--workers), or one task per shard on a Ray cluster (this process scores)")
+    a.add_argument("--ray-address", metavar="ADDR",
+                   help="Ray cluster to use (default: RAY_ADDRESS, else a local Ray instance)")
 
     r = sub.add_parser("review", help="open the review window")
     r.add_argument("target", help="a dataset folder, or one shard-XXXXXX.tar in it")
@@ -119,8 +130,42 @@ def _auto(args) -> int:
         raise UserError("--workers must be at least 1")
     if args.top < 0:
         raise UserError("--top must be at least 0")
-    report = score_dataset(args.dataset, progress=not args.quiet, workers=args.workers,
-                           skip_incomplete=args.skip_incomplete, labels=args.learn)
+    sliced = args.shard_index is not None or args.num_shards is not None
+    if sliced and (args.shard_index is None or args.num_shards is None):
+        raise UserError("--shard-index and --num-shards go together")
+    if (sliced or args.merge) and args.backend == "ray":
+        raise UserError("--backend ray measures and scores in one run; --shard-index and --merge are for array jobs")
+    if sliced and (args.merge or args.learn):
+        raise UserError(f"--shard-index measures one slice; {'--merge' if args.merge else '--learn'} goes with the "
+                        "--merge run after every slice")
+    if args.out is not None and not (sliced or args.merge):
+        raise UserError("--out is the folder of slice files: only with --shard-index or --merge")
+    if args.ray_address is not None and args.backend != "ray":
+        raise UserError("--ray-address: only with --backend ray")
+    if sliced:
+        from .preflags.slices import measure_slice
+
+        path, extracted = measure_slice(args.dataset, args.shard_index, args.num_shards, args.out, args.workers,
+                                        not args.quiet, skip_incomplete=args.skip_incomplete)
+        skipped = extracted["skipped_shards"]
+        print(f"measured {len(extracted['records'])} subjects of slice {args.shard_index} of {args.num_shards} -> "
+              f"{path}" + (f"; SKIPPED {len(skipped)} incomplete shard(s): {', '.join(skipped[:5])}"
+                           if skipped else ""))
+        print(f"once every slice is measured: label-tool auto {args.dataset} --merge"
+              + (f" --out {args.out}" if args.out else ""))
+        return 0
+    if args.merge:
+        from .preflags.slices import merge_slices
+
+        report = merge_slices(args.dataset, args.out, labels=args.learn)
+    elif args.backend == "ray":
+        from .preflags.cluster import score_on_ray
+
+        report = score_on_ray(args.dataset, args.ray_address, progress=not args.quiet,
+                              skip_incomplete=args.skip_incomplete, labels=args.learn)
+    else:
+        report = score_dataset(args.dataset, progress=not args.quiet, workers=args.workers,
+                               skip_incomplete=args.skip_incomplete, labels=args.learn)
     path = write_preflags(args.dataset, report)
     flagged = [r for r in report["subjects"] if r["flags"]]
     skipped = report["summary"]["skipped_shards"]
@@ -168,6 +213,9 @@ def _review(args) -> int:
     print(f"{args.reviewer}: {app.done}/{len(items)} reviewed; log {app.log.path}")
     if app.pending:
         print(f"{len(app.pending)} triage change(s) were not committed (nothing was written for them)")
+    if app.log.failed_writes:
+        raise UserError(f"{app.log.failed_writes} write(s) to the review log {app.log.path} failed (disk full?); "
+                        "the verdicts saved before each are kept, those not saved must be given again")
     return 0
 
 

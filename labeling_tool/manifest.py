@@ -13,8 +13,7 @@ from datagen.errors import UserError
 from datagen.files import atomic_write
 from datagen.manifests import FORMAT, read_manifest
 from datagen.preflags import is_stale, read_preflags
-from datagen.shards import dumps, index_sha256, read_index, shard_index, tar_path
-from datagen.verify import check_shards
+from datagen.shards import check_shards, dumps, index_sha256, read_index, shard_index
 
 from datagen.events import is_decision, read_logs, verdicts
 
@@ -47,9 +46,9 @@ def compile_manifest(dataset, labels_dir, policy: str = "any-bad", unreviewed: s
                      test_count: int | None = None, parent=None, skip_unverified: bool = False) -> dict:
     """Build the manifest dict (not written); see the module docstring.
 
-    Every shard of the index is checked first as ``datagen verify`` does (sidecar, size, sha256;
-    cached): one it cannot vouch for is a UserError naming it, or with ``skip_unverified`` its
-    subjects are rejected with the reason ``unverified_shard``.
+    Every shard of the index is checked first (:func:`datagen.shards.check_shards`: sidecar, size,
+    sha256, subjects and byte ranges; cached): one it cannot vouch for is a UserError naming it, or
+    with ``skip_unverified`` its subjects are rejected with the reason ``unverified_shard``.
     """
     if test_count is not None and test_count < 0:
         raise UserError(f"--test-count must be 0 or more, not {test_count}")
@@ -129,14 +128,10 @@ def compile_manifest(dataset, labels_dir, policy: str = "any-bad", unreviewed: s
 
 
 def shard_problems(dataset, index: dict) -> dict[str, str]:
-    """{shard name: its first problem} for the index's shards that fail the sidecar/size/sha256 check."""
-    tars = {str(tar_path(dataset, shard_index(sh["name"]))): sh["name"] for sh in index["shards"]}
-    out = {}
-    for line in check_shards(dataset, [shard_index(sh["name"]) for sh in index["shards"]]):
-        name = tars.get(line.split(":", 1)[0])
-        if name is not None:
-            out.setdefault(name, line)
-    return out
+    """{shard name: its first problem} for the index's shards that fail :func:`datagen.shards.check_shards`."""
+    problems = check_shards(dataset, [shard_index(sh["name"]) for sh in index["shards"]], index)
+    return {sh["name"]: problems[shard_index(sh["name"])] for sh in index["shards"]
+            if shard_index(sh["name"]) in problems}
 
 
 def flagged_subjects(dataset, required: bool) -> set[str] | None:

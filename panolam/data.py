@@ -23,10 +23,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from datagen.cameras import FRONTAL_YAW_DEG
 from datagen.errors import DatasetError, UserError
 from datagen.manifests import check_dataset, read_manifest
-from datagen.shards import decode_sample, read_fields, shard_index, tar_path
-from datagen.verify import check_shards
+from datagen.shards import check_shards, decode_sample, read_fields, shard_index, tar_path
 
 BACKGROUND = (1.0, 1.0, 1.0)
 SPHEREHEAD_PLANES_NDIM = 5  # (2, D, C, R, R); EG3D's and PanoHead's are (3, C, R, R)
@@ -51,8 +51,9 @@ def accepted_subjects(manifest: dict, split: str, root=None) -> list[tuple[str, 
 
 def check_subject_shards(root, subjects: list[tuple[str, int]]) -> None:
     """DatasetError naming the first shard holding one of ``subjects`` that fails the fast integrity
-    check (:func:`datagen.verify.check_shards`: sidecar, size, sha256; cached, so cheap the second time)."""
-    problems = check_shards(root, {shard for _, shard in subjects})
+    check (:func:`datagen.shards.check_shards`: sidecar, size, sha256, subjects and byte ranges; cached,
+    so cheap the second time)."""
+    problems = list(check_shards(root, {shard for _, shard in subjects}).values())
     if problems:
         more = f" (and {len(problems) - 1} more problems: run datagen verify)" if len(problems) > 1 else ""
         raise DatasetError(problems[0] + more)
@@ -144,8 +145,8 @@ class TrainingSamples(torch.utils.data.Dataset):
     """Sample index g -> N_v views of one accepted training subject (the first view is the input)."""
 
     def __init__(self, root, manifest_path, split: str, views_per_sample: int, resolution: int, seed: int,
-                 input_resolution: int | None = None):
-        self.root, self.seed = root, seed
+                 input_resolution: int | None = None, input_views: str = "any"):
+        self.root, self.seed, self.input_views = root, seed, input_views
         self.subjects = accepted_subjects(read_manifest(manifest_path), split, root)
         check_subject_shards(root, self.subjects)
         self.views_per_sample, self.resolution, self.input_resolution = views_per_sample, resolution, input_resolution
@@ -162,17 +163,29 @@ class TrainingSamples(torch.utils.data.Dataset):
         n = len(self.subjects)
         return self.subjects[_rng(self.seed, 0, g // n).permutation(n)[g % n]]
 
-    def view_choice(self, g: int, n_views: int) -> list[int]:
-        """The N_v distinct views of global sample ``g`` among its subject's ``n_views``."""
-        return [int(v) for v in _rng(self.seed, 1, g).choice(n_views, self.views_per_sample, replace=False)]
+    def view_choice(self, g: int, n_views: int, yaw_deg=None) -> list[int]:
+        """The N_v distinct views of global sample ``g`` among its subject's ``n_views`` (the first is the input).
+
+        With the ``frontal`` input policy (``yaw_deg``: the views' yaws) the input is drawn among the views
+        within +-FRONTAL_YAW_DEG of yaw 0 (the one nearest yaw 0 when there is none), the others among the rest.
+        """
+        rng = _rng(self.seed, 1, g)
+        if self.input_views == "any":
+            return [int(v) for v in rng.choice(n_views, self.views_per_sample, replace=False)]
+        off = np.abs((np.asarray(yaw_deg, dtype=float) + 180.0) % 360.0 - 180.0)
+        frontal = np.flatnonzero(off <= FRONTAL_YAW_DEG)
+        first = int(rng.choice(frontal)) if len(frontal) else int(off.argmin())
+        rest = np.delete(np.arange(n_views), first)
+        return [first] + [int(v) for v in rng.choice(rest, self.views_per_sample - 1, replace=False)]
 
     def __getitem__(self, g: int) -> Views:
         key, shard = self.pick(g)
         fields = read_fields(self.root, shard, key)
-        n = len(view_yaws(fields))
+        yaws = view_yaws(fields)
+        n = len(yaws)
         if n < self.views_per_sample:
             raise UserError(f"{self.root}: subject {key} has {n} views, fewer than {self.views_per_sample} per sample")
-        return decode_views(key, fields, self.view_choice(g, n), self.resolution, self.input_resolution,
+        return decode_views(key, fields, self.view_choice(g, n, yaws), self.resolution, self.input_resolution,
                             str(tar_path(self.root, shard)))
 
 

@@ -469,3 +469,41 @@ def test_stats_without_verdicts_says_so_in_one_line(tiny_dataset, tmp_path, caps
     assert label_main(["stats", str(tiny_dataset), "--labels", str(tmp_path / "labels")]) == 0
     assert capsys.readouterr().out == (f"no verdicts in {tmp_path / 'labels'} yet; review with: label-tool review "
                                        f"{tiny_dataset} --reviewer NAME --labels {tmp_path / 'labels'}\n")
+
+
+def test_a_full_disk_is_one_line_naming_the_log_and_keeps_the_saved_verdicts(tiny_dataset, tmp_path, capsys,
+                                                                              monkeypatch):
+    import errno
+    import datagen.events as events
+    labels = tmp_path / "labels"
+    real, calls = events.os.fsync, []
+
+    def fsync(fd):  # the third write fails after its bytes went out, as a full disk fails a flush
+        calls.append(fd)
+        if len(calls) >= 3:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real(fd)
+    monkeypatch.setattr(events.os, "fsync", fsync)
+    code = label_main(["review", str(tiny_dataset), "--reviewer", "gus", "--labels", str(labels), "--off-screen",
+                       "--keys", "g 2 g"])
+    out, err = capsys.readouterr()
+    log = labels / "gus.jsonl"
+    assert code == 2 and len(err.strip().splitlines()) == 1 and str(log) in err and "failed" in err
+    assert "Traceback" not in out + err and "2/3 reviewed" in out
+    assert actions(labels, "gus") == [("subj00000000", "good", ()), ("subj00000001", "bad", ("broken_back",))]
+    assert log.read_bytes().endswith(b"\n")  # the failed line was taken back whole
+
+
+def test_a_failed_write_leaves_the_session_where_it_was(app_factory, tmp_path, monkeypatch):
+    import errno
+    import datagen.events as events
+    app = app_factory()
+    app.press("g")
+    monkeypatch.setattr(events.os, "fsync", lambda fd: (_ for _ in ()).throw(OSError(errno.ENOSPC, "full")))
+    app.press("2")
+    assert app.notice[0] == "error" and str(tmp_path / "labels" / "alice.jsonl") in app.notice[1]
+    assert app.pos == 1 and app.done == 1 and app.log.seq == 1  # still on the subject whose verdict failed
+    monkeypatch.undo()
+    app.press("2")
+    assert actions(tmp_path / "labels", "alice") == [("subj00000000", "good", ()),
+                                                     ("subj00000001", "bad", ("broken_back",))]

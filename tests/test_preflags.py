@@ -22,6 +22,7 @@ from datagen.shards import FORMAT as DATASET_FORMAT, iter_tar_samples
 from datagen.shards import ShardWriter, SubjectSample, encode_subject, shard_name, subject_id
 from datagen import preflags as report_format
 from labeling_tool import preflags
+from labeling_tool.preflags.detector import FALSE_ALARM_RATE, ramp_flag
 from labeling_tool.preflags.duplicate import nearest
 from labeling_tool.preflags.views import SubjectViews
 
@@ -253,8 +254,10 @@ def records(samples):
     return [("shard-000000", preflags.measure_subject(views_of(s))) for s in samples]
 
 
-def score_samples(samples):
-    report = preflags.score({"index_sha256": "0" * 64, "records": records(samples), "seconds": 1.0})
+def score_samples(samples, false_alarm_rate=None):
+    """Scored with each detector at its own threshold (default) or calibrated to ``false_alarm_rate``."""
+    report = preflags.score({"index_sha256": "0" * 64, "records": records(samples), "seconds": 1.0},
+                            false_alarm_rate=false_alarm_rate)
     return {s["subject"]: s for s in report["subjects"]}, report
 
 
@@ -278,10 +281,91 @@ def _check(clean_heads, bad, detector):
 # ----------------------------------------------------------------------------------------------
 # Each detector flags its synthetic defect and not the clean heads
 
-def test_clean_heads_are_not_flagged(clean_heads):
-    by_key, report = score_samples(clean_heads)
+@pytest.mark.parametrize("rate", [None, FALSE_ALARM_RATE])
+def test_clean_heads_are_not_flagged(clean_heads, rate):
+    by_key, report = score_samples(clean_heads, rate)
     assert all(not s["flags"] for s in by_key.values()), [(k, s["flags"]) for k, s in by_key.items() if s["flags"]]
     assert report["summary"]["flagged"] == 0
+    assert report["calibration"]["false_alarm_rate"] == rate
+    cuts = [d["calibrated_cut"] for d in report["detectors"].values()]
+    assert all(c >= 1.0 for c in cuts) and (rate is not None or cuts == [1.0] * len(cuts))
+
+
+# ----------------------------------------------------------------------------------------------
+# Calibrating the union of detectors: a stated share of clean subjects flagged on any dataset
+
+class _NullDetector(preflags.Detector):
+    """A detector whose measure is a number drawn from a null: robust z against the dataset, flag at 3."""
+
+    def __init__(self, name):
+        super().__init__()
+        self.name = name
+
+    def baseline(self, measured):
+        from labeling_tool.preflags.imaging import robust
+        return robust([m["x"] for m in measured if m], 1e-9)
+
+    def score(self, m, base, index, keys):
+        z = (m["x"] - base[0]) / base[1]
+        return ramp_flag(z, 3.0, 8.0, f"z {z:.1f}", z)
+
+
+NULLS = {"laplace": lambda rng, n: rng.laplace(size=n), "t5": lambda rng, n: rng.standard_t(5, size=n),
+         "gamma2": lambda rng, n: rng.gamma(2.0, size=n), "normal": lambda rng, n: rng.normal(size=n)}
+
+
+def _null_report(draws, n, seed, rate, outliers=0):
+    """The report of ``n`` synthetic subjects, one detector per entry of ``draws`` (NULLS keys); the first
+    ``outliers`` subjects lie 40 null scales above the median on every detector."""
+    rng = np.random.default_rng(seed)
+    dets = [_NullDetector(f"d{k}") for k in range(len(draws))]
+    xs = {d.name: NULLS[kind](rng, n) for d, kind in zip(dets, draws)}
+    for x in xs.values():
+        x[:outliers] = np.median(x) + 40.0 * np.median(np.abs(x - np.median(x)))
+    recs = [("shard-000000", {"key": f"s{i:05d}", "measured": {name: {"x": float(x[i])} for name, x in xs.items()}})
+            for i in range(n)]
+    return preflags.score({"index_sha256": "0" * 64, "records": recs, "seconds": 1.0}, dets, false_alarm_rate=rate)
+
+
+@pytest.mark.parametrize("draws", [("laplace",) * 12, ("laplace", "t5", "gamma2", "normal") * 3])
+def test_union_false_alarm_share_stays_near_the_stated_rate(draws):
+    """Twelve heavy-tailed nulls, each flagged at its own z 3: the union flags a quarter of clean subjects;
+    calibrated, about FALSE_ALARM_RATE (exact for Laplace nulls, less for lighter tails), at any size."""
+    rate = FALSE_ALARM_RATE
+    for n, seeds in ((64, range(20)), (300, range(4)), (3000, range(1))):
+        own = np.mean([_null_report(draws, n, s, None)["summary"]["flagged"] / n for s in seeds])
+        union = np.mean([_null_report(draws, n, s, rate)["summary"]["flagged"] / n for s in seeds])
+        assert own > 0.1, (n, own)
+        assert union <= 1.3 * rate, (n, union)
+        if draws == ("laplace",) * 12:
+            assert union >= 0.5 * rate, (n, union)
+
+
+def test_calibration_keeps_strong_defects_flagged():
+    """10 % of subjects far out on every detector: they widen nothing (censored) and stay flagged."""
+    report = _null_report(("laplace", "t5") * 6, 200, 7, FALSE_ALARM_RATE, outliers=20)
+    flagged = {s["subject"] for s in report["subjects"] if s["flags"]}
+    assert {f"s{i:05d}" for i in range(20)} <= flagged
+    assert len(flagged) - 20 <= 0.05 * 180
+
+
+def test_calibrated_cut_and_rescoring():
+    from labeling_tool.preflags.detector import MIN_SUBJECTS, calibrated_cut, evidence, recalibrated
+
+    tail = 0.0025
+    assert calibrated_cut(np.zeros(500), tail) == 1.0                 # a point mass keeps the own threshold
+    assert calibrated_cut([0.0] * 450 + [5.0] * 50, tail) == 1.0      # nothing between median and 90th pct
+    assert calibrated_cut(np.linspace(0, 9, MIN_SUBJECTS - 1), tail) == 1.0
+    x = np.abs(np.random.default_rng(3).laplace(size=200000)) * np.sign(np.arange(200000) % 2 - 0.5)
+    exact = np.log(0.5 / tail)                                         # Laplace: P(x > q) = exp(-q) / 2
+    assert abs(calibrated_cut(np.maximum(x, 0.0), tail) - exact) < 0.1
+    assert abs(calibrated_cut(np.maximum(np.append(x, [np.inf, np.nan, 1e9] * 10), 0.0), tail) - exact) < 0.1
+    f = ramp_flag(6.0, 3.0, 8.0, "")                                  # evidence 2, ratio 8/3
+    assert abs(evidence(f.score, f.ratio) - 2.0) < 1e-9
+    assert recalibrated(f, 1.0) == f.score
+    assert recalibrated(f, 2.0) == 0.5 and recalibrated(f, 2.5) < 0.5 < recalibrated(f, 1.5)
+    assert recalibrated(ramp_flag(99.0, 3.0, 8.0, ""), 50.0) >= 0.5  # saturated: stays flagged
+    assert recalibrated(preflags.Flag(0.7, "not a ramp"), 3.0) == 0.7
 
 
 def test_janus_cue_needs_more_than_one_measure():
@@ -726,7 +810,7 @@ def test_incomplete_shards_are_named_not_skipped(synthetic_dataset, tmp_path):
     root = tmp_path / "ds"
     shutil.copytree(synthetic_dataset, root)
     (root / "shard-000001.json").unlink()
-    with pytest.raises(DatasetError, match=r"shard-000001.tar: incomplete \(no sidecar\).*--skip-incomplete"):
+    with pytest.raises(DatasetError, match=r"shard-000001.tar: incomplete \(no sidecar shard-000001.json\).*--skip-incomplete"):
         preflags.score_dataset(root)
     report = preflags.score_dataset(root, skip_incomplete=True)
     assert report["summary"]["skipped_shards"] == ["shard-000001"] and len(report["subjects"]) == 12

@@ -30,8 +30,8 @@ from datagen.cameras import fov_to_focal
 from datagen.shards import view_name
 
 from .blur import alpha_edge_width, edge_sharpness
-from .detector import Detector, Flag
-from .imaging import bbox, ramp, robust
+from .detector import Detector, Flag, ramp_flag
+from .imaging import bbox, robust
 
 BACK_SIDE, FRONT_SIDE = (135.0, 180.0, 225.0), (315.0, 0.0, 45.0)  # equator targets of each side
 NA = "not applicable: no back view (yaw 180 +- 20, pitch within 20) among this subject's cameras"
@@ -139,7 +139,7 @@ class _BackDetector(Detector):
         med, scale = base
         z = self.sign * (m["x"] - med) / scale
         t = self.settings
-        return Flag(ramp(z, t.z, t.z_sat), f"{self.explain(m, med)}; z {z:.1f} (flag at {t.z:g})", z)
+        return ramp_flag(z, t.z, t.z_sat, f"{self.explain(m, med)}; z {z:.1f} (flag at {t.z:g})", z)
 
 
 class FlatBack(_BackDetector):
@@ -215,7 +215,7 @@ class Seam(_BackDetector):
             why = (f"back view {view_name(m['view'])}: a step of {m['step']:.2f} px in depth down the centre "
                    f"(dataset median {smed:.2f})")
         t = self.settings
-        return Flag(ramp(z, t.z, t.z_sat), f"{why}; z {z:.1f} (flag at {t.z:g})", z)
+        return ramp_flag(z, t.z, t.z_sat, f"{why}; z {z:.1f} (flag at {t.z:g})", z)
 
 
 class BlurryBack(_BackDetector):
@@ -241,7 +241,8 @@ class BlurryBack(_BackDetector):
         if not widths:
             return None
         colour = None
-        sharp = {name: [x for x in (edge_sharpness(v.rgb[i], v.alpha[i]) for i in views) if np.isfinite(x)]
+        sharp = {name: [x for x in (v.once(("edge_sharpness", i), lambda: edge_sharpness(v.rgb[i], v.alpha[i]))
+                                    for i in views) if np.isfinite(x)]
                  for name, views in sides.items()}
         if sharp["back"] and sharp["front"]:
             colour = float(np.median(sharp["back"]) - np.median(sharp["front"]))
@@ -267,4 +268,4 @@ class BlurryBack(_BackDetector):
                    f"{100 * math.exp(m['colour']):.0f}% of the front views' sharpness (around "
                    f"{view_name(m['front'])}; dataset median {100 * math.exp(cmed):.0f}%)")
         t = self.settings
-        return Flag(ramp(z, t.z, t.z_sat), f"{why}; z {z:.1f} (flag at {t.z:g})", z)
+        return ramp_flag(z, t.z, t.z_sat, f"{why}; z {z:.1f} (flag at {t.z:g})", z)

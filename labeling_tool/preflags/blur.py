@@ -12,27 +12,29 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage as ndi
 
-from .detector import Detector, Flag
-from .imaging import nearest_fill, ramp, robust
+from .detector import Detector, Flag, ramp_flag
+from .imaging import box, dilate, erode, fill_holes, nearest_fill, robust
 
 
 def edge_sharpness(rgb, alpha) -> float:
     """log of the grey gradient energy across the silhouette over that of a sharp composite (alpha *
     inside colour + (1 - alpha) * background) built from the same view: about 0 when the colour image
     is as sharp as its mask, negative when it is blurred. NaN when there is too little edge."""
-    a = alpha.astype(np.float64) / 255.0
-    g = rgb.astype(np.float64).mean(-1) / 255.0
-    m = a > 0.5
+    m = alpha > 127  # a > 0.5 of a = alpha / 255
     if m.sum() < 30 or (~m).sum() < 30:
         return float("nan")
-    outside = a < 0.01
-    bg = float(np.median(g[outside])) if outside.any() else 1.0
-    full = ndi.binary_erosion(a > 0.99, iterations=1)
+    outside = alpha < 2.55  # a < 0.01
+    bg = float(np.median(rgb[outside].astype(np.float64).mean(-1) / 255.0)) if outside.any() else 1.0
+    near = box(m, 4)  # the band around the silhouette (2 px) and the Sobel filters' reach (1 px)
+    a = alpha[near].astype(np.float64) / 255.0
+    g = rgb[near].astype(np.float64).mean(-1) / 255.0
+    m = m[near]
+    full = erode(a > 0.99)
     if not full.any():
         return float("nan")
     inside = nearest_fill(np.where(full, g, 0.0), full)
     sharp = a * inside + (1.0 - a) * bg
-    band = ndi.binary_dilation(m, iterations=2) & ~ndi.binary_erosion(m, iterations=2)
+    band = dilate(m, 2) & ~erode(m, 2)
     e_img = np.hypot(ndi.sobel(g, 0), ndi.sobel(g, 1))[band]
     e_ref = np.hypot(ndi.sobel(sharp, 0), ndi.sobel(sharp, 1))[band]
     keep = e_ref > 0.1
@@ -45,12 +47,14 @@ def alpha_edge_width(alpha) -> float:
     """Median width in pixels (1 / |alpha gradient|, capped at 20) along the outline of the largest
     silhouette, holes filled: about 1-3 px for a crisp surface, more where the density is soft.
     NaN when the outline is too short."""
-    a = alpha.astype(np.float64) / 255.0
-    lab, n = ndi.label(a > 0.5)
-    if n == 0:
+    solid = alpha > 127  # a > 0.5 of a = alpha / 255
+    if not solid.any():
         return float("nan")
-    body = ndi.binary_fill_holes(lab == 1 + int(np.argmax(np.bincount(lab.ravel())[1:])))
-    outline = body & ~ndi.binary_erosion(body)
+    near = box(solid, 2)  # the outline and the Sobel filter's reach
+    a = alpha[near].astype(np.float64) / 255.0
+    lab, n = ndi.label(solid[near])
+    body = fill_holes(lab == 1 + int(np.argmax(np.bincount(lab.ravel())[1:])))
+    outline = body & ~erode(body)
     if outline.sum() < 20:
         return float("nan")
     grad = np.hypot(ndi.sobel(a, 0), ndi.sobel(a, 1))[outline] / 8.0
@@ -74,7 +78,7 @@ class Blur(Detector):
     def measure(self, v):
         edges, detail = [], []
         for _, i in v.eq_used:
-            edges.append(edge_sharpness(v.rgb[i], v.alpha[i]))
+            edges.append(v.once(("edge_sharpness", i), lambda: edge_sharpness(v.rgb[i], v.alpha[i])))
             c, m, _ = v.work[i]
             grey = c.mean(-1)
             inner = ndi.binary_erosion(m, iterations=max(1, int(round(2 * v.s))))
@@ -100,6 +104,6 @@ class Blur(Detector):
         med, scale = base["edge"]
         z = -(m["edge"] - med) / scale
         t = self.settings
-        return Flag(ramp(z, t.z, t.z_sat),
-                    f"silhouette edges carry {100 * math.exp(m['edge']):.0f}% of the gradient energy of a sharp "
+        return ramp_flag(z, t.z, t.z_sat,
+                         f"silhouette edges carry {100 * math.exp(m['edge']):.0f}% of the gradient energy of a sharp "
                     f"cut-out (dataset median {100 * math.exp(med):.0f}%); z {-z:.1f} (flag at -{t.z:g}){detail}", z)

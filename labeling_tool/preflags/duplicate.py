@@ -71,6 +71,7 @@ class Duplicate(Detector):
     name = "duplicate"
     description = ("near-duplicate of another subject: cosine similarity of 16x16 grey thumbnails of the frontal "
                    "view (head crop, dataset mean removed)")
+    calibrated = False  # an absolute similarity to the nearest other subject, not a ramp from 0
 
     @dataclass(frozen=True)
     class Settings:

@@ -13,6 +13,7 @@ from .detector import Detector, Flag
 class Empty(Detector):
     name = "empty"
     description = "views with (almost) no mask, or a subject that does not decode"
+    calibrated = False  # a count of empty views, not a ramp: clean subjects have none
 
     @dataclass(frozen=True)
     class Settings:

@@ -12,8 +12,7 @@ from scipy import ndimage as ndi
 
 from datagen.shards import view_name
 
-from .detector import Detector, Flag
-from .imaging import ramp
+from .detector import Detector, Flag, ramp_flag
 from .views import WORK_RES
 
 
@@ -58,7 +57,7 @@ class Floaters(Detector):
             return Flag(0.0, f"no detached parts in {len(fs)} views")
         i = int(np.argmax(fs))
         t = self.settings
-        return Flag(ramp(float(fs[i]), t.share, t.share_sat),
+        return ramp_flag(float(fs[i]), t.share, t.share_sat,
                     f"{view_name(i)}: {int(m['count'][i])} detached part(s), {100 * fs[i]:.1f}% of the silhouette "
                     f"(largest {int(m['largest'][i])} px); detached parts in {int((fs > 0).sum())} of {len(fs)} views",
                     float(fs[i]))

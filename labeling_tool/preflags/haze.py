@@ -16,8 +16,18 @@ from scipy import ndimage as ndi
 
 from datagen.shards import view_name
 
-from .detector import Detector, Flag
-from .imaging import ramp
+from .detector import Detector, Flag, ramp_flag
+from .imaging import farther_than
+
+
+def _material_box(a: np.ndarray, low: float) -> np.ndarray:
+    """``a`` cut to the bounding box of its pixels above ``low`` and a 1-pixel margin: every solid pixel
+    and all material lie inside, so distances to them, components and openings measured in the box
+    equal those of the whole view (pixels outside hold no material), at the cost of the box only."""
+    rows, cols = np.nonzero((a > low).any(1))[0], np.nonzero((a > low).any(0))[0]
+    if not rows.size:
+        return a[:0, :0]
+    return a[max(rows[0] - 1, 0):rows[-1] + 2, max(cols[0] - 1, 0):cols[-1] + 2]
 
 
 class Haze(Detector):
@@ -45,20 +55,24 @@ class Haze(Detector):
         k = v.resolution / 64.0
         shares, thin = [], []
         for i in range(v.n):
-            a = np.asarray(v.alpha[i], dtype=np.float32) / 255.0
+            a = _material_box(np.asarray(v.alpha[i], dtype=np.float32) / 255.0, st.low)
             solid = a > 0.5
             if solid.sum() < 16:
                 shares.append(0.0)
                 thin.append(0.0)
                 continue
-            far = ndi.distance_transform_edt(~solid) > st.distance * k
-            partial = (a > st.low) & (a < st.high) & far
-            shares.append(float(partial.sum() / solid.sum()))
+            seen = a > st.low
+            far = farther_than(solid, seen, st.distance * k)
+            shares.append(float((far & (a < st.high)).sum() / solid.sum()))
             parts, n = ndi.label(solid)
-            body = parts == 1 + int(np.argmax(ndi.sum(solid, parts, range(1, n + 1))))
-            material = (a > st.low) & (ndi.distance_transform_edt(~body) > st.distance * k)
-            strands = material & ~ndi.binary_opening(material, iterations=max(1, int(round(st.opening * k))))
-            thin.append(float(strands.sum() / solid.sum()))
+            if n == 1:  # the body is the solid silhouette
+                material = far
+            else:
+                body = parts == 1 + int(np.argmax(ndi.sum(solid, parts, range(1, n + 1))))
+                material = farther_than(body, seen, st.distance * k)
+            if material.any():  # an opening of nothing is nothing
+                material &= ~ndi.binary_opening(material, iterations=max(1, int(round(st.opening * k))))
+            thin.append(float(material.sum() / solid.sum()))
         return {"share": np.asarray(shares, dtype=np.float32), "thin": np.asarray(thin, dtype=np.float32)}
 
     def score(self, m, base, index, keys):
@@ -68,10 +82,10 @@ class Haze(Detector):
             return Flag(0.0, f"no semi-transparent material around the head in {len(sh)} views")
         t = self.settings
         i, j = int(np.argmax(sh)), int(np.argmax(thin))
-        partial = Flag(ramp(float(sh[i]), t.share, t.share_sat),
+        partial = ramp_flag(float(sh[i]), t.share, t.share_sat,
                        f"{view_name(i)}: semi-transparent material {100 * sh[i]:.1f}% of the silhouette away from the "
                        f"head; in {int((sh > t.share).sum())} of {len(sh)} views above {100 * t.share:g}%", float(sh[i]))
-        wisps = Flag(ramp(float(thin[j]), t.thin, t.thin_sat),
+        wisps = ramp_flag(float(thin[j]), t.thin, t.thin_sat,
                      f"{view_name(j)}: thin material (wisps) {100 * thin[j]:.1f}% of the silhouette away from the head's "
                      f"body (flag at {100 * t.thin:g}%)", float(thin[j]))
         return partial if partial.score >= wisps.score else wisps

@@ -17,7 +17,7 @@ from scipy import ndimage as ndi
 from datagen.shards import view_name
 
 from .detector import Detector, Flag
-from .imaging import bbox, blob_response, nearest_fill, ramp, robust_tail
+from .imaging import bbox, blob_response, box, fill_holes, nearest_fill, ramp, robust_tail
 from .views import EQUATOR_STEP, WORK_RES
 
 
@@ -84,13 +84,17 @@ class Holes(Detector):
             if not m.any():
                 silh.append(0.0)
                 continue
-            holes = ndi.binary_fill_holes(m) & ~m
+            near = box(m, 1)  # holes lie inside the silhouette's box; outside it all is background
+            m = m[near]
+            holes = fill_holes(m) & ~m
             lab, nh = ndi.label(holes)
             big = np.bincount(lab.ravel())[1:] if nh else np.zeros(0)
             if nh:
                 top, bot, _, _ = bbox(m)
-                rows = ndi.center_of_mass(holes, lab, range(1, nh + 1))
-                big = big[[(r - top) / max(bot - top, 1) < st.gap_below for r, _ in rows]]
+                y0 = near[0].start  # rows (centres of mass) in the view's pixels, summed as in ndi.center_of_mass
+                rows = ndi.sum(holes * (np.arange(m.shape[0], dtype=float)[:, None] + y0), lab, range(1, nh + 1)) \
+                    / ndi.sum(holes, lab, range(1, nh + 1))
+                big = big[[(r - (top + y0)) / max(bot - top, 1) < st.gap_below for r in rows]]
             big = big[big >= min_px]
             silh.append(float(big.sum() / m.sum()) if big.size else 0.0)
         craters = []
@@ -137,7 +141,7 @@ class Holes(Detector):
         if why_cr is not None:
             s_cr = ramp(best_z, st.z, st.z_sat)
         if s_sil >= s_cr and why_sil:
-            return Flag(s_sil, why_sil, best_z if why_cr else None)
+            return Flag(s_sil, why_sil, best_z if why_cr else None, st.silhouette_share_sat / st.silhouette_share)
         if why_cr:
-            return Flag(s_cr, why_cr, best_z)
+            return Flag(s_cr, why_cr, best_z, st.z_sat / st.z)
         return Flag(0.0, "no depth views to search")

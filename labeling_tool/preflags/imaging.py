@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 from scipy import ndimage as ndi
+from scipy.spatial import cKDTree
 
 
 def ramp(m: float, t: float, s: float) -> float:
@@ -76,6 +78,59 @@ def bbox(mask: np.ndarray):
     rows = np.nonzero(mask.any(1))[0]
     cols = np.nonzero(mask.any(0))[0]
     return rows[0], rows[-1], cols[0], cols[-1]
+
+
+def box(mask: np.ndarray, margin: int) -> tuple[slice, slice]:
+    """The bounding box of a non-empty ``mask`` grown by ``margin`` px each way (clipped to the image).
+    Filters, distance transforms and labels computed inside it equal the whole image's for every
+    pixel at least their reach inside the margin (translation does not change them), and cost the
+    box's area instead of the image's."""
+    top, bot, left, right = bbox(mask)
+    return (slice(max(top - margin, 0), bot + margin + 1), slice(max(left - margin, 0), right + margin + 1))
+
+
+_CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+
+
+def _cross_filter(op, mask: np.ndarray, iterations: int) -> np.ndarray:
+    """``op`` (cv2.erode or cv2.dilate) with a 3x3 cross, ``iterations`` times, nothing outside the image."""
+    out = np.ascontiguousarray(mask, dtype=bool).view(np.uint8)
+    for _ in range(iterations):
+        out = op(out, _CROSS, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    return out.view(bool)
+
+
+def erode(mask: np.ndarray, iterations: int = 1) -> np.ndarray:
+    """``ndi.binary_erosion(mask, iterations=...)`` with OpenCV's faster filter."""
+    return _cross_filter(cv2.erode, mask, iterations)
+
+
+def dilate(mask: np.ndarray, iterations: int = 1) -> np.ndarray:
+    """``ndi.binary_dilation(mask, iterations=...)`` with OpenCV's faster filter."""
+    return _cross_filter(cv2.dilate, mask, iterations)
+
+
+def fill_holes(mask: np.ndarray) -> np.ndarray:
+    """``ndi.binary_fill_holes(mask)``: the background components (4-connected) that do not touch the
+    image's edge are filled; found with one labelling instead of an iterated dilation."""
+    lab, _ = ndi.label(~mask)
+    edge = np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))
+    return mask | ~np.isin(lab, edge)
+
+
+def farther_than(region: np.ndarray, candidates: np.ndarray, r: float) -> np.ndarray:
+    """Boolean image: the ``candidates`` pixels farther than ``r`` px (Euclidean) from every pixel of the
+    non-empty ``region``; equal to ``candidates & (ndi.distance_transform_edt(~region) > r)``. The
+    nearest pixel of a region lies on its outline, so the distances come from a k-d tree of the outline
+    queried at the candidates (exact: the square root of the same integer squared distances), at the
+    cost of those pixels instead of the whole image."""
+    out = np.zeros(region.shape, dtype=bool)
+    points = np.argwhere(candidates & ~region)
+    if points.size:
+        outline = np.argwhere(region & ~erode(region))
+        d, _ = cKDTree(outline).query(points, distance_upper_bound=r + 1.0)
+        out[tuple(points.T)] = d > r
+    return out
 
 
 def downsample(rgb, alpha, depth, k: int):

@@ -6,8 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .detector import Detector, Flag
-from .imaging import ramp, robust
+from .detector import Detector, Flag, ramp_flag
+from .imaging import robust
 
 
 class Implausible(Detector):
@@ -44,4 +44,4 @@ class Implausible(Detector):
         if not parts:
             return Flag(0.0, "nothing to measure (all views empty)")
         zmax, why = max(parts)
-        return Flag(ramp(zmax, self.settings.z, self.settings.z_sat), why, zmax)
+        return ramp_flag(zmax, self.settings.z, self.settings.z_sat, why, zmax)

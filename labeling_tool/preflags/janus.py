@@ -25,7 +25,7 @@ from scipy import ndimage as ndi
 from datagen.faces import cnn_detector, hog_detector
 from datagen.shards import view_name
 
-from .detector import Detector, Flag
+from .detector import Detector, Flag, ramp_flag
 from .imaging import blob_response, central, nearest_fill, ramp, robust
 from .views import BACK_TOL
 
@@ -285,8 +285,8 @@ class Janus(Detector):
         zc = min((j["colour"] - base["colour"][0]) / base["colour"][1], t.cue_cap)
         zr = min((math.log(j["relief"] + 1e-4) - base["relief"][0]) / base["relief"][1], t.cue_cap)
         m = (zs + zc + zr) / 3.0
-        cue = Flag(ramp(m, t.z, t.z_sat),
-                   f"back view {view_name(j['back'])} vs front {view_name(j['front'])}: edge corr "
+        cue = ramp_flag(m, t.z, t.z_sat,
+                        f"back view {view_name(j['back'])} vs front {view_name(j['front'])}: edge corr "
                    f"{j['sim']:.2f} (dataset median {base['sim'][0]:.2f}), face-colour corr "
                    f"{j['colour']:.2f} (median {base['colour'][0]:.2f}), nose-like bump "
                    f"{j['relief']:.4f} (median {math.exp(base['relief'][0]) - 1e-4:.4f}); z {m:.1f} (flag at {t.z:g})",
@@ -300,7 +300,10 @@ class Janus(Detector):
         best = faces[view]
         cnn = j.get("cnn", NO_FACE)
         eyes = j.get("eyes", 0)
-        face = max(hog[view], ramp(cnn - NO_FACE, t.cnn - NO_FACE, t.cnn_sat - NO_FACE), ramp(eyes, t.eyes, t.eyes_sat))
+        # (score, saturation over threshold) of each face cue; the strongest counts
+        face, ratio = max((hog[view], (t.face_sat - NO_FACE) / (at[view] - NO_FACE)),
+                          (ramp(cnn - NO_FACE, t.cnn - NO_FACE, t.cnn_sat - NO_FACE), (t.cnn_sat - NO_FACE) / (t.cnn - NO_FACE)),
+                          (ramp(eyes, t.eyes, t.eyes_sat), t.eyes_sat / t.eyes))
         seen = (f"face detector on {view_name(view)} (yaw {j.get('yaw', {}).get(view, 0):.0f}): score {best:.2f} "
                 f"(flag at {at[view]:g})") if best > NO_FACE else "no face found by HOG on the back views"
         seen += (f"; CNN face detector on {view_name(j['back'])}: confidence {cnn:.2f} (flag at {t.cnn:g})"
@@ -308,5 +311,5 @@ class Janus(Detector):
         seen += (f"; a pair of eyes on {view_name(j['back'])} ({eyes} detections each, flag at {t.eyes})" if eyes
                  else "; no pair of eyes on the back view")
         if face > cue.score:
-            return Flag(face, f"{seen}; {cue.why}", cue.value)
-        return Flag(cue.score, f"{cue.why}; {seen}", cue.value)
+            return Flag(face, f"{seen}; {cue.why}", cue.value, ratio)
+        return Flag(cue.score, f"{cue.why}; {seen}", cue.value, cue.ratio)

@@ -16,9 +16,10 @@ import numpy as np
 
 from datagen.errors import DatasetError
 from datagen.preflags import FORMAT
-from datagen.shards import index_sha256, read_index, read_sidecar, shard_index, tar_path
+from datagen.shards import check_shards, index_sha256, read_index, read_sidecar, shard_index, tar_path
 
-from .detector import FLAG_AT
+from .detector import (FALSE_ALARM_RATE, FLAG_AT, MIN_SUBJECTS, NULL_QUANTILES, calibrated_cut, evidence,
+                       recalibrated)
 from .learn import learn_from
 from .registry import DETECTORS
 from .views import SubjectViews
@@ -45,32 +46,30 @@ def _measure(task):
         return shard, _failed(key, f"{tar}: subject {key}: measuring failed ({type(e).__name__}: {e})")
 
 
-def plan(root, skip_incomplete: bool = False) -> tuple[list, list]:
-    """(tasks without detectors, names of skipped shards) for every subject of the complete shards.
+def plan(root, skip_incomplete: bool = False, shards=None) -> tuple[list, list]:
+    """(tasks without detectors, names of skipped shards) for every subject of the shards numbered
+    ``shards`` (default: all the index lists), in index order.
 
-    A shard that is missing, incomplete or whose sidecar cannot be read is a DatasetError naming it,
-    unless ``skip_incomplete`` (then it is listed as skipped).
+    Each shard must pass :func:`datagen.shards.check_shards` (sidecar, size, sha256, subjects and byte
+    ranges; cached): one that fails is a DatasetError naming it, unless ``skip_incomplete`` (then it
+    is listed as skipped).
     """
     root = Path(root)
+    index = read_index(root)
+    listed = [sh for sh in index["shards"] if shards is None or shard_index(sh["name"]) in shards]
+    problems = check_shards(root, [shard_index(sh["name"]) for sh in listed], index)
     tasks, skipped = [], []
-    for shard in read_index(root)["shards"]:
+    for shard in listed:
         i = shard_index(shard["name"])
-        tar = tar_path(root, i)
-        side = read_sidecar(root, i, strict=True)
-        problem = (f"{tar}: missing" if not tar.exists() else
-                   f"{tar}: incomplete (no sidecar)" if side is None else
-                   f"{tar}: size differs from its sidecar" if tar.stat().st_size != side["tar_bytes"] else None)
-        if problem:
+        if i in problems:
             if not skip_incomplete:
-                raise DatasetError(f"{problem}; its subjects cannot be scored (finish the dataset with 'datagen "
-                                   "sample ... --resume', or pass --skip-incomplete)")
+                raise DatasetError(f"{problems[i]}; its subjects cannot be scored ('datagen verify {root}' tells "
+                                   "more; --skip-incomplete scores the other shards)")
             skipped.append(shard["name"])
             continue
-        for key in shard["subjects"]:
-            if key not in side["offsets"]:
-                raise DatasetError(f"{tar}: the sidecar has no byte range for {key}")
-            start, end = side["offsets"][key]
-            tasks.append((shard["name"], str(tar), key, start, end))
+        offsets = read_sidecar(root, i)["offsets"]
+        tar = str(tar_path(root, i))
+        tasks += [(shard["name"], tar, key, *offsets[key]) for key in shard["subjects"]]
     return tasks, skipped
 
 
@@ -86,13 +85,13 @@ def _pool_context():
 
 
 def extract(root, workers: int = 1, progress: bool = False, detectors=DETECTORS,
-            skip_incomplete: bool = False) -> dict:
+            skip_incomplete: bool = False, shards=None) -> dict:
     """First pass: {"index_sha256", "records": [(shard, record), ...] in index order, "skipped_shards",
-    "seconds"}. With ``workers`` > 1 the workers are fresh processes (see ``_pool_context``), which
-    import the calling script as a module: scripts guard their entry point (``if __name__ ==
-    "__main__":``)."""
+    "seconds"} for the shards numbered ``shards`` (default all). With ``workers`` > 1 the workers are
+    fresh processes (see ``_pool_context``), which import the calling script as a module: scripts
+    guard their entry point (``if __name__ == "__main__":``)."""
     t0 = time.perf_counter()
-    tasks, skipped = plan(root, skip_incomplete)
+    tasks, skipped = plan(root, skip_incomplete, shards)
     tasks = [t + (detectors,) for t in tasks]
     bar = _bar(len(tasks)) if progress else None
     if workers > 1 and len(tasks) > 1:
@@ -129,8 +128,10 @@ def thumbnails(extracted: dict, report: dict) -> list:
     return [thumbs.get(s["subject"]) for s in report["subjects"]]
 
 
-def score(extracted: dict, detectors=DETECTORS) -> dict:
-    """Second step: every detector's baseline from the records, then the report (worst first)."""
+def score(extracted: dict, detectors=DETECTORS, false_alarm_rate: float | None = FALSE_ALARM_RATE) -> dict:
+    """Second step: every detector's baseline from the records, its scores, its cut calibrated on the
+    dataset (``detector.calibrated_cut``: the union flags at most ``false_alarm_rate`` of clean
+    subjects; None: each detector at its own threshold), then the report (worst first)."""
     pairs = extracted["records"]
     records = [r for _, r in pairs]
     keys = [r["key"] for r in records]
@@ -138,16 +139,23 @@ def score(extracted: dict, detectors=DETECTORS) -> dict:
     bases = {d.name: d.baseline([r["measured"][d.name] if good else None for r, good in zip(records, ok)])
              for d in detectors}
     names = [d.name for d in detectors]
+    tail = false_alarm_rate / max(1, len(detectors)) if false_alarm_rate else None
+    raw = {d.name: [d.score(r["measured"][d.name], bases[d.name], idx, keys) if good else None
+                    for idx, (r, good) in enumerate(zip(records, ok))] for d in detectors}
+    cuts = {d.name: calibrated_cut([0.0 if f.ratio is None else evidence(f.score, f.ratio)
+                                    for f in raw[d.name] if f is not None], tail) if d.calibrated and tail else 1.0
+            for d in detectors}
     subjects = []
     for idx, (shard, r) in enumerate(pairs):
         dets = {}
         for d in detectors:
-            if "error" in r:
+            f = raw[d.name][idx]
+            if f is None:
                 flag = {"score": 1.0, "why": f"does not decode: {r['error']}"} if d.name == "empty" else \
                     {"score": 0.0, "why": "not measured (subject does not decode)"}
             else:
-                f = d.score(r["measured"][d.name], bases[d.name], idx, keys)
-                flag = {"score": round(float(min(1.0, max(0.0, f.score))), 4), "why": f.why}
+                why = f.why if cuts[d.name] <= 1.0 else f"{f.why}; calibrated cut {cuts[d.name]:.2f}x that threshold"
+                flag = {"score": round(float(min(1.0, max(0.0, recalibrated(f, cuts[d.name])))), 4), "why": why}
                 if f.value is not None and np.isfinite(f.value):
                     flag["value"] = round(float(f.value), 4)
             dets[d.name] = flag
@@ -160,7 +168,9 @@ def score(extracted: dict, detectors=DETECTORS) -> dict:
     return {
         "format": FORMAT,
         "dataset_index_sha256": extracted["index_sha256"],
-        "detectors": {d.name: d.header() for d in detectors},
+        "detectors": {d.name: d.header(cuts[d.name]) for d in detectors},
+        "calibration": {"false_alarm_rate": false_alarm_rate, "tail_per_detector": round(tail, 6) if tail else None,
+                        "null_quantiles": list(NULL_QUANTILES), "min_subjects": MIN_SUBJECTS},
         "summary": {"subjects": n, "flagged": sum(1 for s in subjects if s["flags"]),
                     "per_detector": {name: sum(1 for s in subjects if name in s["flags"]) for name in names},
                     "skipped_shards": list(extracted.get("skipped_shards", []))},
@@ -179,13 +189,17 @@ def score_dataset(root, progress: bool = False, workers: int = 1, detectors=DETE
     """
     t0 = time.perf_counter()
     extracted = extract(root, max(1, int(workers)), progress, detectors, skip_incomplete)
+    return finish(extracted, t0, {"workers": max(1, int(workers))}, detectors, labels)
+
+
+def finish(extracted: dict, t0: float, timing: dict, detectors=DETECTORS, labels=None) -> dict:
+    """The report from the records ``extracted`` (:func:`score`, then learning from ``labels``), its
+    ``timing`` the measuring seconds, the seconds since ``t0`` (perf_counter) and ``timing``."""
     report = score(extracted, detectors)
     if labels is not None:
         learn_from(report, labels, thumbnails(extracted, report))
     total = time.perf_counter() - t0
     n = report["summary"]["subjects"]
     report["timing"] = {"extract_seconds": round(extracted["seconds"], 3), "total_seconds": round(total, 3),
-                        "subjects_per_second": round(n / total, 2) if total > 0 else None,
-                        "workers": max(1, int(workers))}
+                        "subjects_per_second": round(n / total, 2) if total > 0 else None, **timing}
     return report
-

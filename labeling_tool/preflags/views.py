@@ -8,6 +8,7 @@ factor), so thresholds do not depend on the image size.
 """
 from __future__ import annotations
 
+import functools
 import json
 from dataclasses import dataclass, field
 
@@ -47,10 +48,15 @@ def needed(field_name: str, fields: dict) -> bool:
     if not (field_name.endswith(".png") or field_name.endswith(".depth.exr")):
         return False
     try:
-        keep = set(equator_views(json.loads(fields["json"])["views"]).values())
-        return int(field_name[1:].split(".", 1)[0]) in keep
+        return int(field_name[1:].split(".", 1)[0]) in _equator_set(fields["json"])
     except (KeyError, ValueError, TypeError):
         return True
+
+
+@functools.lru_cache(maxsize=4)
+def _equator_set(metadata: bytes) -> frozenset:
+    """The equator views' indices of a subject's metadata JSON (parsed once per subject, not per member)."""
+    return frozenset(equator_views(json.loads(metadata)["views"]).values())
 
 
 @dataclass
@@ -73,6 +79,13 @@ class SubjectViews:
     s: float
     eq: dict
     work: dict = field(default_factory=dict)
+    memo: dict = field(default_factory=dict)
+
+    def once(self, key, compute):
+        """``compute()``, computed once per subject under ``key`` (measures several detectors share)."""
+        if key not in self.memo:
+            self.memo[key] = compute()
+        return self.memo[key]
 
     @property
     def views(self) -> list:

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .detector import Detector, Flag
-from .imaging import ramp, robust_below
+from .detector import Detector, Flag, ramp_flag
+from .imaging import robust_below
 
 
 class WashedOut(Detector):
@@ -57,6 +57,6 @@ class WashedOut(Detector):
         fade = self._fade(m)
         z = (fade - med) / scale
         t = self.settings
-        return Flag(ramp(z, t.z, t.z_sat),
+        return ramp_flag(z, t.z, t.z_sat,
                     f"most saturated 2 % at saturation {m['sat98']:.2f}, darkest 1 % at grey {m['grey1']:.2f} "
                     f"(fade {fade:.2f}, dataset median {med:.2f}, scale {scale:.2f}); z {z:.1f} (flag at {t.z:g})", z)

@@ -1,0 +1,155 @@
+"""Throughput of the automatic pre-flags (``label-tool auto``): subjects per second per core at 128 and
+512 px, what each detector costs, and the hours for the paper's 165K subjects on 64 cores.
+
+Protocol: a procedural 360 dataset (32 views, the generator's default defect rate, ``--seed``) at
+each resolution, made once (``--keep`` reuses it). Each subject is read and measured in this one
+process, one after the other, as one ``label-tool auto`` worker does: read+decode (the members the
+detectors need), then each detector's ``measure``. Per-core throughput is subjects per CPU second
+of this process (``time.process_time``, all its threads), so other work on the machine slows the
+wall clock, not the figure; the wall-clock rate and the load average are reported beside it. The
+scores (``score``, from the records) take milliseconds for a whole dataset and are left out. The
+report's sha256 (less its timing) is recorded per dataset: the same code and seed give the same.
+
+    python -m benchmarks.preflags_speed --keep /tmp/pfspeed   # about 10 min on 2 cores, datasets kept
+    python -m benchmarks.preflags_speed --quick                # a smoke run, about 3 minutes
+    python -m benchmarks.preflags_speed --report-only          # rewrite the markdown from the JSON
+
+Writes ``benchmarks/reports/preflags_speed.{json,md}``.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import tempfile
+import time
+from pathlib import Path
+
+from datagen.generators.procedural import ProceduralConfig
+from datagen.preflags import write_preflags
+from labeling_tool.preflags import DETECTORS, SubjectViews, measure_subject, score
+from labeling_tool.preflags.janus import CNN_VIEW_PX, best_cnn_face
+from labeling_tool.preflags.pipeline import plan
+
+from .common import REPORTS, benchmark_parser, command_line, load_average, machine_info, median, write_json
+from .preflags_quality import generate
+
+REPORT = REPORTS / "preflags_speed"
+PAPER_SUBJECTS = 165_000   # 48K + 117K subjects kept in the paper's dataset
+CLUSTER_CORES = 64
+GOALS = {128: 5.0, 512: PAPER_SUBJECTS / (CLUSTER_CORES * 3600.0)}  # subjects/s/core: stated goal, 1 hour
+
+
+def measure_dataset(root: Path) -> dict:
+    """Per subject: read+decode and each detector's seconds (wall), and the whole run's wall and CPU seconds."""
+    tasks, _ = plan(root)
+    stages = {"read+decode": []} | {d.name: [] for d in DETECTORS}
+    records, cnn = [], []
+    wall0, cpu0 = time.perf_counter(), time.process_time()
+    for shard, tar, key, start, end in tasks:
+        t = time.perf_counter()
+        views = SubjectViews.read(tar, key, start, end)
+        stages["read+decode"].append(time.perf_counter() - t)
+        measured = {}
+        for d in DETECTORS:
+            t = time.perf_counter()
+            measured[d.name] = d.measure(views)
+            stages[d.name].append(time.perf_counter() - t)
+        if views.back is not None:  # the part of janus that does not depend on the image size
+            t = time.perf_counter()
+            best_cnn_face(views.rgb[views.back], views.mask(views.back))
+            cnn.append(time.perf_counter() - t)
+        record = measure_subject(views, ())
+        record["measured"] = measured
+        records.append((shard, record))
+    wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
+    cpu -= sum(cnn) * cpu / wall  # the CNN timed twice: its second run taken out (at this run's CPU/wall ratio)
+    wall -= sum(cnn)
+    report = score({"index_sha256": hashlib.sha256((root / "index.json").read_bytes()).hexdigest(),
+                    "records": records, "skipped_shards": []})
+    report.pop("timing")
+    blob = write_preflags(root, report, root / "preflags-speed-report.json").read_bytes()
+    n = len(tasks)
+    return {"dataset": str(root), "subjects": n, "wall_seconds": round(wall, 3), "cpu_seconds": round(cpu, 3),
+            "subjects_per_cpu_second": round(n / cpu, 3), "subjects_per_wall_second": round(n / wall, 3),
+            "stage_ms": {k: {"median": round(1000 * median(v), 1), "mean": round(1000 * sum(v) / len(v), 1)}
+                         for k, v in stages.items()},
+            "janus_cnn_ms": round(1000 * median(cnn), 1) if cnn else None,
+            "report_sha256": hashlib.sha256(blob).hexdigest(), "flagged": report["summary"]["flagged"]}
+
+
+def hours_for(subjects: int, per_core: float, cores: int = CLUSTER_CORES) -> float:
+    return subjects / (per_core * cores) / 3600.0
+
+
+def write_markdown(data: dict) -> str:
+    m = data["machine"]
+    lines = ["# Pre-flags throughput", "",
+             f"`{data['command']}` on {data['when']}; {m['cpu_model']}, {m['usable_cpus']} usable CPUs; load average "
+             f"(1 min) {data['load_before']:.2f} before, {data['load_after']:.2f} after "
+             "(the machine is shared; per-core figures count this process's CPU seconds).", "",
+             "Procedural 360 datasets (32 views, default defect rate, seed "
+             f"{data['seed']}); one process measures subject after subject, as one `label-tool auto` worker does.", "",
+             "| resolution | subjects | subjects/s/core (CPU) | subjects/s (wall) | goal, subjects/s/core | "
+             f"{PAPER_SUBJECTS // 1000}K subjects on {CLUSTER_CORES} cores |",
+             "|---|---|---|---|---|---|"]
+    for res, r in data["runs"].items():
+        goal = GOALS[int(res)]
+        met = "met" if r["subjects_per_cpu_second"] >= goal else "**missed**"
+        lines.append(f"| {res} px | {r['subjects']} | {r['subjects_per_cpu_second']:.2f} | "
+                     f"{r['subjects_per_wall_second']:.2f} | {goal:.2f} ({met}) | "
+                     f"{hours_for(PAPER_SUBJECTS, r['subjects_per_cpu_second']):.2f} h |")
+    lines += ["", "Per subject, milliseconds (median; mean in brackets), most expensive first at the largest size:", ""]
+    sizes = list(data["runs"])
+    names = sorted(data["runs"][sizes[-1]]["stage_ms"], key=lambda k: -data["runs"][sizes[-1]]["stage_ms"][k]["mean"])
+    lines += ["| stage | " + " | ".join(f"{s} px" for s in sizes) + " |", "|---|" + "---|" * len(sizes)]
+    for k in names:
+        lines.append(f"| {k} | " + " | ".join(f"{data['runs'][s]['stage_ms'][k]['median']:.1f} "
+                                              f"({data['runs'][s]['stage_ms'][k]['mean']:.1f})" for s in sizes) + " |")
+    lines += ["", "Report sha256 (less its timing) per dataset, to compare runs of the same seed: " +
+              ", ".join(f"{s} px `{data['runs'][s]['report_sha256'][:16]}`" for s in sizes), ""]
+    for s in sizes:
+        r = data["runs"][s]
+        total = sum(v["median"] for v in r["stage_ms"].values())
+        if r["janus_cnn_ms"]:
+            lines.append(f"- {s} px: dlib's CNN face detector (janus, on the back view's head scaled to "
+                         f"{CNN_VIEW_PX} px, so the same cost at any size) takes {r['janus_cnn_ms']:.0f} ms of the "
+                         f"{total:.0f} ms a subject costs ({100 * r['janus_cnn_ms'] / total:.0f} %); alone it caps "
+                         f"a core at {1000 / r['janus_cnn_ms']:.1f} subjects/s.")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    ap = benchmark_parser(__doc__, "fewer subjects (8 at 128 px, 2 at 512 px)", "rewrite the markdown from the JSON")
+    ap.add_argument("--seed", type=int, default=41)
+    ap.add_argument("--subjects", type=int, nargs=2, default=[32, 8], metavar=("AT_128", "AT_512"))
+    ap.add_argument("--keep", help="folder for the datasets, reused when run again (default: a temporary folder)")
+    args = ap.parse_args(argv)
+    if args.report_only:
+        data = json.loads(REPORT.with_suffix(".json").read_text())
+        REPORT.with_suffix(".md").write_text(write_markdown(data))
+        return 0
+    counts = (8, 2) if args.quick else tuple(args.subjects)
+    base = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="preflags-speed-"))
+    data = {"when": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "command": command_line(Path(__file__), argv),
+            "machine": machine_info(), "seed": args.seed, "generation_seconds": {}, "runs": {}}
+    rate = ProceduralConfig().defect_rate
+    roots = {}
+    for res, n in zip((128, 512), counts):
+        roots[res] = base / f"seed{args.seed}-{n}x{res}"
+        print(f"dataset {roots[res]}", flush=True)
+        data["generation_seconds"][res] = generate(roots[res], args.seed, rate, n, res, workers=1)
+    data["load_before"] = load_average()
+    for res, root in roots.items():
+        print(f"measuring {res} px ...", flush=True)
+        data["runs"][res] = measure_dataset(root)
+    data["load_after"] = load_average()
+    best = data["runs"][512]["subjects_per_cpu_second"]
+    data["hours_165k_on_64_cores"] = round(hours_for(PAPER_SUBJECTS, best), 3)
+    write_json(REPORT.with_suffix(".json"), data)
+    REPORT.with_suffix(".md").write_text(write_markdown(data))
+    print(REPORT.with_suffix(".md").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

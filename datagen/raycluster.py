@@ -1,0 +1,52 @@
+"""Connecting to Ray for the commands that can run their tasks on a cluster (``--backend ray``)."""
+from __future__ import annotations
+
+import logging
+import os
+import socket
+from contextlib import contextmanager
+
+from .errors import UserError
+
+
+@contextmanager
+def ray_connection(address: str | None):
+    """Yield the ``ray`` module connected to the cluster this process is already connected to, else
+    the one at ``address`` / RAY_ADDRESS, else a private local instance. Only a connection or
+    instance made here is closed here. A local instance started here reports no usage statistics,
+    has no dashboard UI and keeps its workers' output and its informational messages off the
+    terminal. An address that does not answer, or a failed start, is a UserError in one line."""
+    try:
+        import ray
+    except ImportError:
+        raise UserError("the ray backend needs the optional extra: pip install 'panolam-toolkit[ray]'") from None
+    ray_logger = logging.getLogger("ray")
+    level = ray_logger.level
+    started = not ray.is_initialized()
+    if started:
+        target = address or os.environ.get("RAY_ADDRESS") or ""
+        host, sep, port = target.split("://", 1)[-1].rpartition(":")
+        if sep and port.isdigit():  # Ray itself keeps retrying an address that does not answer, for minutes
+            try:
+                socket.create_connection((host.strip("[]") or "127.0.0.1", int(port)), timeout=10).close()
+            except OSError as e:
+                raise UserError(f"cannot reach the Ray cluster at {target}: {e.strerror or e}") from None
+        set_usage_env = "RAY_USAGE_STATS_ENABLED" not in os.environ
+        if set_usage_env:
+            os.environ["RAY_USAGE_STATS_ENABLED"] = "0"
+        try:
+            ray.init(address=address, include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
+        except Exception as e:
+            ray.shutdown()  # whatever a failed start left running
+            ray_logger.setLevel(level)
+            raise UserError(f"cannot start or reach Ray ({target or 'local'}): "
+                            f"{str(e).splitlines()[0] if str(e) else type(e).__name__}") from e
+        finally:
+            if set_usage_env:
+                os.environ.pop("RAY_USAGE_STATS_ENABLED", None)
+    try:
+        yield ray
+    finally:
+        if started:
+            ray.shutdown()
+            ray_logger.setLevel(level)

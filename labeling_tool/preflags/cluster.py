@@ -1,0 +1,59 @@
+"""``label-tool auto --backend ray``: one Ray task per shard measures its subjects, this process scores.
+
+The shards are checked and planned here (index, sidecars: the dataset folder must be shared with
+the cluster's nodes, at the same path); each task reads and measures one shard's subjects with the
+registry's detectors and returns their records, so the report equals a one-process run's apart
+from its ``timing``.
+"""
+from __future__ import annotations
+
+import time
+
+from datagen.raycluster import ray_connection
+from datagen.shards import index_sha256
+
+from .pipeline import _bar, _measure, finish, plan
+from .registry import DETECTORS
+
+
+def _measure_shard(tasks: list) -> list:
+    """Ray task: the (shard, record) pairs of one shard's planned subjects, in order."""
+    return [_measure(t + (DETECTORS,)) for t in tasks]
+
+
+def score_on_ray(root, address: str | None = None, progress: bool = False, skip_incomplete: bool = False,
+                 labels=None) -> dict:
+    """The report of the dataset at ``root`` measured by Ray tasks (see the module docstring);
+    ``address`` as :func:`datagen.raycluster.ray_connection` takes it, ``labels`` as in
+    :func:`pipeline.score_dataset`."""
+    t0 = time.perf_counter()
+    tasks, skipped = plan(root, skip_incomplete)
+    by_shard: dict[str, list] = {}
+    for t in tasks:
+        by_shard.setdefault(t[0], []).append(t)
+    bar = _bar(len(tasks)) if progress else None
+    results: dict[str, list] = {}
+    with ray_connection(address) as ray:
+        remote = ray.remote(num_cpus=1)(_measure_shard)
+        pending = {remote.remote(group): shard for shard, group in by_shard.items()}
+        try:
+            while pending:
+                done, _ = ray.wait(list(pending), num_returns=1)
+                shard = pending.pop(done[0])
+                try:
+                    results[shard] = ray.get(done[0])
+                except ray.exceptions.RayTaskError as e:
+                    cause = getattr(e, "cause", None)
+                    if isinstance(cause, Exception):
+                        raise cause from e  # the task's own error, as one process raises it
+                    raise RuntimeError(f"measuring {shard} failed on Ray: {e}") from e
+                if bar is not None:
+                    bar.update(len(results[shard]))
+        finally:
+            for ref in pending:  # after an error or an interrupt: stop the rest
+                ray.cancel(ref)
+            if bar is not None:
+                bar.close()
+    extracted = {"index_sha256": index_sha256(root), "records": [p for s in by_shard for p in results[s]],
+                 "skipped_shards": skipped, "seconds": time.perf_counter() - t0}
+    return finish(extracted, t0, {"backend": "ray", "tasks": len(by_shard)}, DETECTORS, labels)

@@ -1,0 +1,120 @@
+"""Readers check what they read against the sidecar: a shard whose byte ranges, keys or subject names
+were tampered with is refused in one line naming it by ``label-tool auto``, ``label-tool compile`` and
+training's shard check, as ``datagen verify`` refuses it."""
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import shutil
+import tarfile
+
+import pytest
+
+import datagen.shards as shards
+from datagen.errors import DatasetError
+from datagen.shards import check_shards, sidecar_path, tar_path
+from datagen.verify import verify_dataset
+from labeling_tool.cli import main as label_main
+from panolam.data import check_subject_shards
+
+
+def _rewrite_sidecar(ds, i, edit) -> None:
+    path = sidecar_path(ds, i)
+    side = json.loads(path.read_text())
+    edit(side)
+    path.write_text(json.dumps(side, indent=1, sort_keys=True) + "\n")
+
+
+def _offset_digit(side) -> None:
+    key = side["subjects"][-1]
+    text = str(side["offsets"][key][0])
+    side["offsets"][key][0] = int(str(int(text[0]) % 9 + 1) + text[1:])  # its leading digit changed
+
+
+def _key_renamed(side) -> None:
+    key = side["subjects"][-1]
+    side["offsets"][key.replace("subj", "subx")] = side["offsets"].pop(key)
+
+
+def _rename_subject(ds, i) -> str:
+    """Rename the last subject of shard ``i`` in its tar and its sidecar (same length, so the byte ranges
+    stay right), with the sidecar's sha256 updated: only the dataset index still has the old name."""
+    tar = tar_path(ds, i)
+    old = json.loads(sidecar_path(ds, i).read_text())["subjects"][-1]
+    new = old[:-1] + ("9" if old[-1] != "9" else "8")
+    out = io.BytesIO()
+    with tarfile.open(tar, "r:") as src, tarfile.open(fileobj=out, mode="w", format=tarfile.USTAR_FORMAT) as dst:
+        for m in src:
+            data = src.extractfile(m).read()
+            if m.name.startswith(old + "."):
+                m.name = new + m.name[len(old):]
+            dst.addfile(m, io.BytesIO(data))
+    tar.write_bytes(out.getvalue())
+
+    def edit(side):
+        side["subjects"][-1] = new
+        side["offsets"][new] = side["offsets"].pop(old)
+        side["tar_bytes"] = len(out.getvalue())
+        side["tar_sha256"] = hashlib.sha256(out.getvalue()).hexdigest()
+    _rewrite_sidecar(ds, i, edit)
+    return new
+
+
+DAMAGES = ["offset_digit", "key_renamed", "subject_renamed"]
+
+
+def damage(ds, kind: str, i: int = 0) -> None:
+    if kind == "subject_renamed":
+        _rename_subject(ds, i)
+    else:
+        _rewrite_sidecar(ds, i, {"offset_digit": _offset_digit, "key_renamed": _key_renamed}[kind])
+
+
+@pytest.fixture
+def copy(tiny_dataset, tmp_path):
+    ds = tmp_path / "ds"
+    shutil.copytree(tiny_dataset, ds)
+    return ds
+
+
+@pytest.mark.parametrize("kind", DAMAGES)
+def test_tampered_sidecars_are_refused_by_every_reader_as_by_verify(copy, tmp_path, capsys, kind):
+    assert check_shards(copy, [0, 1]) == {}  # remembered as passed before the damage
+    damage(copy, kind)
+    assert any("shard-000000" in p for p in verify_dataset(copy)["problems"])
+    problems = check_shards(copy, [0, 1])
+    assert list(problems) == [0] and "shard-000000" in problems[0]
+    with pytest.raises(DatasetError, match="shard-000000"):
+        check_subject_shards(copy, [("subj00000000", 0)])  # what training runs before it reads
+    check_subject_shards(copy, [("subj00000002", 1)])  # the other shard is still fine
+    capsys.readouterr()
+    labels = tmp_path / "labels"
+    labels.mkdir()
+    for args in (["auto", str(copy), "--quiet"],
+                 ["compile", str(copy), "--labels", str(labels), "--out", str(tmp_path / "m.json")]):
+        assert label_main(args) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "shard-000000" in err, (args[0], err)
+    assert not (copy / "preflags.json").exists() and not (tmp_path / "m.json").exists()
+
+
+def test_a_second_check_reads_no_tar_and_a_changed_sidecar_is_checked_again(copy, monkeypatch):
+    hashed, walked = [], []
+    real_hash, real_walk = shards.sha256_file, shards.tar_layout
+    monkeypatch.setattr(shards, "sha256_file", lambda p: hashed.append(p) or real_hash(p))
+    monkeypatch.setattr(shards, "tar_layout", lambda p: walked.append(p) or real_walk(p))
+    (copy / shards.SHARD_CHECKS).unlink(missing_ok=True)
+    assert check_shards(copy, [0, 1]) == {} and len(hashed) == len(walked) == 2
+    hashed.clear(), walked.clear()
+    assert check_shards(copy, [0, 1]) == {} and hashed == walked == []
+    damage(copy, "offset_digit", 0)
+    assert list(check_shards(copy, [0, 1])) == [0] and hashed == [tar_path(copy, 0)]
+
+
+def test_layout_of_a_good_tar_matches_its_sidecar(tiny_dataset):
+    side = json.loads(sidecar_path(tiny_dataset, 0).read_text())
+    runs = shards.tar_layout(tar_path(tiny_dataset, 0))
+    assert [k for k, _, _ in runs] == side["subjects"]
+    assert {k: [s, e] for k, s, e in runs} == side["offsets"]
+    assert runs[0][1] == 0 and runs[0][2] == runs[1][1]
