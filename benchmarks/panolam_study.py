@@ -3,7 +3,7 @@ what do speed and accuracy trade?
 
     python -m benchmarks.panolam_study                          # everything, one process (hours on 2 cores)
     python -m benchmarks.panolam_study --phase train --threads 1 --variants main quarter_subjects &
-    python -m benchmarks.panolam_study --phase train --threads 1 --variants no_c2f tiny single_point rays_k2
+    python -m benchmarks.panolam_study --phase train --threads 1 --variants no_c2f tiny single_point rays_k8
     python -m benchmarks.panolam_study --phase baselines final speed report   # then, on a quiet machine
 
 Phases (each skips what is already on disk, so an interrupted study resumes; training processes can
@@ -15,7 +15,7 @@ run side by side, each variant writing only under ``runs/<name>/``):
 3. train: the main ``tiny`` run (``--steps``, evaluated on held-out subjects every ``--eval-every``
    steps; training stops there and resumes exactly) and the paper's ablations with their own
    ``--ablation-steps`` schedule: ``tiny``, no coarse-to-fine (``tiny+no_c2f``), single-point
-   tri-plane query (``tiny+single_point``), ray aggregation with K_m = 2 and ``tiny`` on a quarter
+   tri-plane query (``tiny+single_point``), ray aggregation with K_m = 8 (the `tiny` of before, now 2) and ``tiny`` on a quarter
    of the training subjects.
 4. final: every run's last checkpoint on the held-out subjects (front view in; front, left, back
    and right out; 64 px), each in a fresh process for clean time and memory readings.
@@ -39,9 +39,8 @@ import torch
 from benchmarks.common import (HERE, REPORTS, machine_info, peak_rss_since_reset_mb, pyplot,
                                reset_peak_rss, run_child, table, write_report)
 from datagen.manifests import read_manifest
-from panolam.data import accepted_subjects, load_views
-from panolam.evaluate import evaluate
-from panolam.gaussians import Gaussians
+from panolam.evaluate import EVAL_VIEWS, MeanColourTemplate, evaluate, mean_foreground_colour
+from panolam.evaluate import paired_difference as per_subject_difference
 from panolam.model import PanoLAM
 from panolam.checkpoints import load_model, read_checkpoint
 from panolam.config import TrainConfig, preset
@@ -54,7 +53,7 @@ VARIANTS = {  # name: (config, fraction of training subjects, model overrides); 
     "tiny": ("tiny", 1.0, {}),
     "no_c2f": ("tiny+no_c2f", 1.0, {}),
     "single_point": ("tiny+single_point", 1.0, {}),
-    "rays_k2": ("tiny", 1.0, {"ray_samples": 2}),
+    "rays_k8": ("tiny", 1.0, {"ray_samples": 8}),
     "quarter_subjects": ("tiny", 0.25, {}),
 }
 RESOLUTION = 64
@@ -103,7 +102,7 @@ def evaluate_run(model, data, manifest, args, resolution: int = RESOLUTION) -> d
     """Held-out metrics (means per view, medians of the times) and per-subject PSNR/SSIM for paired comparisons."""
     r = evaluate(model, data, read_manifest(manifest), "test", resolution=resolution, limit=args.eval_subjects)
     return {**{k: r[k] for k in ("subjects", "per_view", "reconstruct_s_median", "render_ms_per_view_median")},
-            "rows": [{k: row[k] for k in ("subject", "view", "psnr", "ssim")} for row in r["rows"]]}
+            "rows": [{k: row[k] for k in ("subject", "view", "psnr", "psnr_fg", "ssim", "ssim_fg")} for row in r["rows"]]}
 
 
 def train_phase(args, data, manifest) -> None:
@@ -136,32 +135,10 @@ def train_phase(args, data, manifest) -> None:
             _write_json(curve_path, curve)
 
 
-class MeanColourTemplate(torch.nn.Module):
-    """Baseline: the untrained model's dense template Gaussians, opaque, in one colour."""
-
-    def __init__(self, model: PanoLAM, colour: torch.Tensor):
-        super().__init__()
-        self.model, self.colour, self.cfg = model, colour, model.cfg
-
-    def forward(self, x):
-        d = self.model(x).dense
-        return SimpleNamespace(dense=Gaussians(d.means, d.quats, d.scales, torch.full_like(d.opacities, 0.99),
-                                               self.colour.expand_as(d.colors)))
-
-
-def mean_foreground_colour(data, manifest) -> torch.Tensor:
-    total, weight = torch.zeros(3), 0.0
-    for key, shard in accepted_subjects(read_manifest(manifest), "train")[:32]:
-        v = load_views(data, key, shard, resolution=RESOLUTION)
-        total += (v.images * v.masks).sum(dim=(0, 2, 3))
-        weight += float(v.masks.sum())
-    return total / max(weight, 1.0)
-
-
 def baseline_phase(args, data, manifest) -> None:
     torch.manual_seed(0)
     untrained = PanoLAM(preset("tiny")).eval()
-    colour = mean_foreground_colour(data, manifest)
+    colour = mean_foreground_colour(data, read_manifest(manifest), RESOLUTION)
     _write_json(args.out / "baselines.json", {
         "untrained": evaluate_run(untrained, data, manifest, args),
         "mean_colour_template": {**evaluate_run(MeanColourTemplate(untrained, colour), data, manifest, args),
@@ -250,15 +227,8 @@ def _views(r):
 
 
 def paired_difference(a: dict, b: dict) -> tuple[float, float]:
-    """Mean and standard error of the per-subject PSNR difference a - b (each subject's views averaged)."""
-    def per_subject(r):
-        out = {}
-        for row in r["rows"]:
-            out.setdefault(row["subject"], []).append(row["psnr"])
-        return {k: float(np.mean(v)) for k, v in out.items()}
-    pa, pb = per_subject(a), per_subject(b)
-    d = np.array([pa[k] - pb[k] for k in pa if k in pb])
-    return float(d.mean()), (float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("nan"))
+    """Mean and standard error of the per-subject PSNR difference a - b (each subject's four views averaged)."""
+    return per_subject_difference(a, b, "psnr", views=tuple(EVAL_VIEWS))[:2]
 
 
 def _machine_line(m: dict) -> str:
@@ -302,12 +272,12 @@ def training_markdown(results: dict, plot_note: str) -> str:
         lines += ["", "Held-out PSNR of the main run during training (its schedule ends at the last step):", "",
                   "| step | PSNR dB | SSIM | training min |", "|---|---|---|---|"]
         lines += [f"| {r['step']} | {_psnr(r):.2f} | {_ssim(r):.4f} | {t:.0f} |" for r, t in zip(curves[MAIN], elapsed)]
-    ablations = [n for n in ("tiny", "no_c2f", "single_point", "rays_k2", "quarter_subjects") if n in finals]
+    ablations = [n for n in ("tiny", "no_c2f", "single_point", "rays_k8", "quarter_subjects") if n in finals]
     if "tiny" in finals and len(ablations) > 1:
         steps = finals["tiny"]["step"]
         what = {"tiny": "the `tiny` preset", "no_c2f": "no coarse-to-fine: the attention stack runs on all M_D points",
                 "single_point": "tri-plane queried at the point only (no ray aggregation)",
-                "rays_k2": "ray aggregation with K_m = 2 instead of 8",
+                "rays_k8": "ray aggregation with K_m = 8 instead of 2",
                 "quarter_subjects": "a quarter of the training subjects"}
         lines += ["", f"## The paper's ablations at small scale ({steps} steps each, each with its own schedule)", "",
                   "| variant | what changes | PSNR dB | SSIM | `tiny` minus it, dB | train s/step | paper: PSNR / SSIM |",
@@ -352,7 +322,7 @@ def speed_markdown(results: dict, plot_note: str) -> str:
                   *table(["px", "PSNR dB", "SSIM", "render ms/view", "peak MiB"],
                          [[r["value"], *quality(r), f"{r['render_ms_per_view_median']:.1f}", f"{r['peak_mb']:.0f}"]
                           for r in axis("render_resolution")]), ""]
-    k_runs = [(n, k) for n, k in (("single_point", 1), ("rays_k2", 4 * 2), ("tiny", 4 * preset("tiny").ray_samples))
+    k_runs = [(n, k) for n, k in (("single_point", 1), ("rays_k8", 4 * 8), ("tiny", 4 * preset("tiny").ray_samples))
               if n in finals]
     if k_runs:
         lines += [f"## Tri-plane samples per dense point (separate trainings, {finals[k_runs[0][0]]['step']} steps)", "",
@@ -415,7 +385,7 @@ def speed_plot(results: dict, path: Path) -> str:
     if plt is None:
         return "Plot skipped: matplotlib is not installed."
     rows, finals = results["speed_vs_error"], results["final"]
-    k_runs = [(k, finals[n]) for n, k in (("single_point", 1), ("rays_k2", 8), ("tiny", 4 * preset("tiny").ray_samples))
+    k_runs = [(k, finals[n]) for n, k in (("single_point", 1), ("rays_k8", 32), ("tiny", 4 * preset("tiny").ray_samples))
               if n in finals]
     panels = [("dense Gaussians M_D", [(r["value"], r) for r in rows if r["axis"] == "dense_points"],
                "reconstruct ms", lambda r: r["reconstruct_s_median"] * 1000),

@@ -20,6 +20,7 @@ from pathlib import Path
 
 from datagen.device import DEVICE_HELP
 from datagen.errors import OneLineParser, UserError, run_command
+from datagen.text import plural
 
 from .config import PATH_FIELDS, ModelConfig, TrainConfig
 from .options import add_options, at_least, describe, fixed_fields, given, shown, unit_interval
@@ -92,6 +93,8 @@ def build_parser() -> OneLineParser:
     p.add_argument("--resolution", type=at_least(16), help="px of the compared views (default: as stored)")
     add_options(p, TrainConfig, only=LPIPS_FIELDS)
     p.add_argument("--no-faces", action="store_true", help="skip CSIM/APD (they need dlib)")
+    p.add_argument("--no-baselines", action="store_true",
+                   help="skip the untrained model and the mean-colour template (each costs as much as the model)")
     _model_path_options(p, where_now=True)
     p.add_argument("--device", default="cpu", help=DEVICE_HELP)
     return parser
@@ -180,14 +183,22 @@ def cmd_eval(args) -> int:
     from datagen.manifests import read_manifest
     from .checkpoints import model_from_checkpoint, read_checkpoint
     from .data import accepted_subjects
-    from .evaluate import evaluate, write_report
+    from .evaluate import baselines, evaluate, write_report
     _check_device(args)
     manifest = read_manifest(args.manifest)
     state = read_checkpoint(args.ckpt)
     trained_on = set(state.get("data", {}).get("subjects", []))
     model = model_from_checkpoint(state, args.ckpt, args.device, **given(args, ModelConfig, only=PATH_FIELDS))
+    try:
+        trained = TrainConfig.from_dict(state["train_config"])
+    except (TypeError, ValueError) as e:
+        raise UserError(f"{args.ckpt}: its training config does not fit this version ({e})") from None
+    step = state["step"]
     del state  # a copy of the weights and the optimizer's state: not needed while evaluating
     lpips, notes = None, []
+    notes.append(f"Checkpoint: step {step:,} of {trained.steps:,}; trained with --input-views {trained.input_views} "
+                 f"(inputs {'within +-36 deg of the front' if trained.input_views == 'frontal' else 'from any view'}) "
+                 f"and --targets {trained.targets}.")
     subjects = accepted_subjects(manifest, args.split, args.data)[:args.limit]
 
     seen = trained_on & {key for key, _ in subjects}
@@ -195,7 +206,7 @@ def cmd_eval(args) -> int:
         notes.append(f"WARNING: {len(seen)} of the evaluated subjects were training subjects of this run "
                      f"(is {args.manifest} the manifest it was trained with?)")
     if len(subjects) < FEW_TEST_SUBJECTS:
-        notes.append(f"NOTE: {len(subjects)} {args.split} subject(s) only: these means are mostly noise, not a "
+        notes.append(f"NOTE: {plural(len(subjects), args.split + ' subject')} only: these means are mostly noise, not a "
                      f"measure of the model (hold out at least {FEW_TEST_SUBJECTS} to compare runs)")
     if args.lpips_backbone or args.lpips_lin:
         from .metrics import load_lpips
@@ -216,8 +227,10 @@ def cmd_eval(args) -> int:
                      "yaw/pitch/roll difference in degrees from a 68-landmark PnP head-pose estimate. CSIM counts the "
                      "front views whose target has a face dlib finds (the render is read at the target's face box); "
                      "APD counts the views where a face is found in both, which blurry renders often miss.")
-    result = evaluate(model, args.data, manifest, args.split, resolution=args.resolution,
-                      lpips=lpips, faces=faces, limit=args.limit)
+    options = dict(resolution=args.resolution, lpips=lpips, limit=args.limit)
+    result = evaluate(model, args.data, manifest, args.split, faces=faces, **options)
+    if not args.no_baselines:
+        result["baselines"] = baselines(model, trained.seed, args.data, manifest, args.split, **options)
     out = Path(args.out) if args.out else Path(args.ckpt if Path(args.ckpt).is_dir() else Path(args.ckpt).parent) / \
         f"eval-{args.split}"
     md, js = write_report(result, out, f"PanoLAM evaluation: {args.split} split of {args.data}", notes)

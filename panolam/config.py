@@ -3,7 +3,9 @@
 ``full`` carries the paper's values (DINOv2 ViT-L/14 layers 5/12/18/24 fused to C_t = 512 tokens,
 a 5,023-vertex template, 8 blocks of 16 heads, M_D ~ 10K dense Gaussians, a 6 x 64 x 64 spherical
 tri-plane queried by K_m = 32 samples on rays from 4 virtual cameras, offsets clamped to 0.15 m
-(coarse) and 0.056 m (dense)). ``tiny`` keeps every stage but is sized to train on a 2-core CPU.
+(coarse) and 0.056 m (dense)). ``tiny`` keeps every stage but is sized to train on a 2-core CPU; its
+K_m = 2: a ray's +-0.02 m (0.08 world units) spans about 1.2 texels of its 16 x 16 planes, so more
+samples read the same texels (K_m = 8 cost ~45 % of a training step for no measured gain).
 
 Lengths named ``*_m`` are in FLAME metres, as in the paper; the model converts them to world units
 with the template's ``units_per_metre``. Other lengths are world units (:mod:`datagen.cameras`: the head is
@@ -22,6 +24,8 @@ from typing import Optional
 from .options import at_least, non_negative, path_fields, positive, setting, unit_interval
 
 TRIPLANE_MODES = ("rays", "point", "none")
+INPUT_VIEW_POLICIES = ("frontal", "any")
+TARGET_POLICIES = ("all", "others")
 
 
 @dataclass(frozen=True)
@@ -57,7 +61,7 @@ class ModelConfig:
     triplane_resolution: int = 16              # H_T = W_T
     triplane_channels: int = 32                # SphereHead's plane channels
     triplane_blocks: int = 2
-    ray_samples: int = 8                       # K_m per virtual camera
+    ray_samples: int = 2                       # K_m per virtual camera: 2 span ~1.2 texels of 16 x 16 planes
     ray_half_length_m: float = 0.02            # samples lie within +- this of the point along each ray
     virtual_camera_radius: float = 2.7         # world units, the 4 cameras (front, left, right, back)
     box_warp: float = 1.0                      # SphereHead's tri-plane extent, world units
@@ -105,12 +109,20 @@ class TrainConfig:
 
     steps: int = setting(2000, "optimizer steps; the cosine schedule ends there", parse=at_least(1), fixed=True)
     batch_size: int = setting(2, "subjects per step and process", parse=at_least(1), fixed=True)
-    views_per_sample: int = setting(6, "N_v: 1 input + N_v - 1 targets", parse=at_least(2), fixed=True)
+    views_per_sample: int = setting(6, "N_v views per sample: 1 input and N_v - 1 other views", parse=at_least(2),
+                                    fixed=True)
+    input_views: str = setting("frontal", "the views a sample's input is drawn from: within the frontal yaw range "
+                                          "(+-36 deg), as evaluation feeds, or any (the paper's)",
+                               choices=INPUT_VIEW_POLICIES, fixed=True)
+    targets: str = setting("all", "views the renders are supervised on: all N_v (the input view among them) or "
+                                  "the N_v - 1 others", choices=TARGET_POLICIES, fixed=True)
     render_resolution: int = setting(64, "px of the supervised renders (targets are area-resized)",
                                      parse=at_least(16), fixed=True)
     lr: float = setting(4e-4, "peak learning rate", parse=positive, fixed=True)
     betas: tuple = setting((0.9, 0.95), "Adam's beta1 beta2", parse=unit_interval, nargs=2, fixed=True)
     warmup_steps: int = setting(100, "linear warm-up steps", parse=at_least(0), fixed=True)
+    lr_floor: float = setting(0.1, "the cosine decay ends at this fraction of the peak learning rate",
+                              parse=unit_interval, fixed=True)
     grad_clip: float = setting(1.0, "gradient-norm clipping threshold", parse=positive, fixed=True)
     lambda_l1: float = setting(1.0, "lambda_1, weight of L1 in L_rgb", parse=non_negative, fixed=True)
     lambda_perceptual: float = setting(1.0, "lambda_2, weight of the perceptual term in L_rgb", parse=non_negative,
@@ -142,7 +154,13 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, values: dict) -> "TrainConfig":
-        return _from_dict(cls, values)
+        """A config from its ``to_dict``; settings a run predates take the value it trained with
+        (:data:`LEGACY_TRAINING`), so older runs resume and report what they did."""
+        return _from_dict(cls, {**LEGACY_TRAINING, **values})
+
+
+# What runs written before a setting existed did: inputs from any view, the other views as targets, cosine to 0.
+LEGACY_TRAINING = {"input_views": "any", "targets": "others", "lr_floor": 0.0}
 
 PRESETS = {
     "tiny": ModelConfig(),

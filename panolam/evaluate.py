@@ -2,12 +2,20 @@
 
 Per subject, the input is the view nearest yaw 0 deg and the targets are the views nearest yaw
 0/90/180/270 deg (the 360 protocol stores these exactly; a subject without a view within
-``YAW_TOLERANCE`` of each is skipped and counted). Metrics per view on [0, 1] images over the
-dataset background: PSNR, SSIM (11x11 Gaussian window, sigma 1.5), LPIPS when its weights are
-given; CSIM on the front view where the target has a face (the render is read at the target's
-face box: both share the camera) and APD on the views where a face is found in both images, with
-dlib's models (:mod:`datagen.faces`; not ArcFace and not a 3DMM pose estimator, see there).
-Times: reconstruction (one forward pass) and render per view, medians.
+``YAW_TOLERANCE`` of each is skipped and counted). The front target is the input view itself, so
+the left, back and right views are reported apart as the *novel* views. Metrics per view on
+[0, 1] images over the dataset background: PSNR and SSIM (11x11 Gaussian window, sigma 1.5) over
+the full frame and over the *foreground* (the pixels where the target's or the render's alpha is
+at least ``FOREGROUND_ALPHA``: on a white frame most pixels are background, which any head-shaped
+blob gets right), LPIPS when its weights are given; CSIM on the front view where the target has a
+face (the render is read at the target's face box: both share the camera) and APD on the views
+where a face is found in both images, with dlib's models (:mod:`datagen.faces`; not ArcFace and
+not a 3DMM pose estimator, see there). Times: reconstruction (one forward pass) and render per
+view, medians.
+
+Baselines (:func:`baselines`) give every figure its floor: the untrained model (same config, same
+seeded initialisation as the run's step 0) and :class:`MeanColourTemplate`, the template rendered
+opaque in the mean foreground colour of the training subjects.
 """
 from __future__ import annotations
 
@@ -16,6 +24,7 @@ import math
 import statistics
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import torch
@@ -25,14 +34,19 @@ from datagen.files import atomic_write
 from datagen.shards import read_fields, tar_path, to_uint8
 from datagen.text import plural
 
-from .data import BACKGROUND, accepted_subjects, check_subject_shards, decode_views, view_yaws
+from .data import BACKGROUND, accepted_subjects, check_subject_shards, decode_views, load_views, view_yaws
 from .gaussians import Gaussians
 from .metrics import psnr, ssim
 from .model import PanoLAM
 from .rasterizer import render_views
 
 EVAL_VIEWS = {"front": 0.0, "left": 90.0, "back": 180.0, "right": 270.0}
+INPUT_VIEW = "front"
+NOVEL = "novel"  # the evaluation views other than the input view, pooled
 YAW_TOLERANCE = 10.0
+FOREGROUND_ALPHA = 0.5
+METRICS = ("psnr", "psnr_fg", "ssim", "ssim_fg", "lpips", "csim", "apd")
+COLOUR_SUBJECTS = 32  # training subjects averaged for the mean-colour template
 
 
 def nearest_views(yaw_deg: np.ndarray) -> dict | None:
@@ -83,18 +97,20 @@ def evaluate(model: PanoLAM, data, manifest: dict, split: str = "test", resoluti
                                             rec.dense.opacities, rec.dense.colors)))
         res = images.shape[-1]
         t0 = time.perf_counter()
-        rgb, _, _ = render_views(g, meta_views.cam2world[None].to(device), meta_views.K[None].to(device),
-                                 res, background=constant(BACKGROUND, device))
+        rgb, alpha, _ = render_views(g, meta_views.cam2world[None].to(device), meta_views.K[None].to(device),
+                                     res, background=constant(BACKGROUND, device))
         _sync(device)
         render_times.append((time.perf_counter() - t0) / len(idx))
         pred = rgb[0].permute(0, 3, 1, 2).clamp(0, 1)
-        scores = [psnr(pred, images), ssim(pred, images)]
+        fg = torch.maximum(alpha[0].permute(0, 3, 1, 2), meta_views.masks.to(device)) >= FOREGROUND_ALPHA
+        scores = [psnr(pred, images), psnr(pred, images, fg), ssim(pred, images), ssim(pred, images, fg)]
         scores += [lpips(pred, images).flatten()] if lpips is not None else []
-        p, s, *lp = torch.stack(scores).cpu().tolist()  # one read per subject
+        p, p_fg, s, s_fg, *lp = torch.stack(scores).cpu().tolist()  # one read per subject
         if faces is not None:  # (2, views, H, W, 3): renders and targets, copied to the host together
             pictures = to_uint8(torch.stack([pred, images]).permute(0, 1, 3, 4, 2).cpu().numpy())
         for j, name in enumerate(picked):
-            row = {"subject": key, "view": name, "psnr": p[j], "ssim": s[j], "lpips": lp[0][j] if lp else None}
+            row = {"subject": key, "view": name, "psnr": p[j], "psnr_fg": p_fg[j], "ssim": s[j], "ssim_fg": s_fg[j],
+                   "lpips": lp[0][j] if lp else None}
             if faces is not None:
                 a, b = pictures[:, j]
                 row["csim"] = faces.csim(a, b, box_from_b=True) if name == "front" else None
@@ -116,35 +132,121 @@ def _sync(device):
 
 
 def summarize(rows: list, skipped: list, rec_times: list, render_times: list) -> dict:
-    metrics = ["psnr", "ssim", "lpips", "csim", "apd"]
+    """Means per evaluation view, over the novel views and over all (``per_view``), with counts."""
     per_view = {}
-    for name in list(EVAL_VIEWS) + ["all"]:
-        sel = [r for r in rows if name == "all" or r["view"] == name]
-        per_view[name] = {m: _mean([r.get(m) for r in sel]) for m in metrics}
+    for name in list(EVAL_VIEWS) + [NOVEL, "all"]:
+        sel = [r for r in rows if name == "all" or r["view"] == name or (name == NOVEL and r["view"] != INPUT_VIEW)]
+        per_view[name] = {m: _mean([r.get(m) for r in sel]) for m in METRICS}
         per_view[name]["counted"] = {m: sum(1 for r in sel if r.get(m) is not None and not math.isnan(r[m]))
-                                     for m in metrics}
+                                     for m in METRICS}
     return {"subjects": len({r["subject"] for r in rows}), "skipped_subjects": skipped, "per_view": per_view,
             "reconstruct_s_median": _median(rec_times), "render_ms_per_view_median": _median(render_times) * 1000,
             "rows": rows}
 
 
+class MeanColourTemplate(torch.nn.Module):
+    """Baseline: a model's dense Gaussians at initialisation (the template), opaque, in one colour (3,)."""
+
+    def __init__(self, model: PanoLAM, colour: torch.Tensor):
+        super().__init__()
+        self.model, self.cfg = model, model.cfg
+        self.register_buffer("colour", colour.float())
+
+    def forward(self, x):
+        d = self.model(x).dense
+        return SimpleNamespace(dense=Gaussians(d.means, d.quats, d.scales, torch.full_like(d.opacities, 0.99),
+                                               self.colour.to(d.colors).expand_as(d.colors)))
+
+
+def mean_foreground_colour(data, manifest: dict, resolution: int | None = None,
+                           limit: int = COLOUR_SUBJECTS) -> torch.Tensor:
+    """Mean RGB (3,) of the foreground (alpha-weighted) of the first ``limit`` training subjects."""
+    total, weight = torch.zeros(3), 0.0
+    for key, shard in accepted_subjects(manifest, "train", data)[:limit]:
+        v = load_views(data, key, shard, resolution=resolution)
+        total += (v.images * v.masks).sum(dim=(0, 2, 3))
+        weight += float(v.masks.sum())
+    return total / max(weight, 1.0)
+
+
+def untrained_model(model: PanoLAM, seed: int) -> PanoLAM:
+    """A model of ``model``'s config as a run seeded ``seed`` starts it (its step 0), on its device."""
+    torch.manual_seed(seed)
+    return PanoLAM(model.cfg).to(next(model.parameters()).device).eval()
+
+
+def baselines(model: PanoLAM, seed: int, data, manifest: dict, split: str = "test", **options) -> dict:
+    """:func:`evaluate` results of the untrained model and the mean-colour template on the same subjects
+    (``options`` as for evaluate; ``faces`` is left out: neither baseline has a face to measure)."""
+    options.pop("faces", None)
+    untrained = untrained_model(model, seed)
+    colour = mean_foreground_colour(data, manifest, options.get("resolution"))
+    template = MeanColourTemplate(untrained, colour.to(next(untrained.parameters()).device))
+    return {"untrained": evaluate(untrained, data, manifest, split, **options),
+            "mean_colour_template": {**evaluate(template, data, manifest, split, **options),
+                                     "colour": colour.tolist()}}
+
+
+def _fmt(v) -> str:
+    return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.4f}"
+
+
+def paired_difference(a: dict, b: dict, metric: str = "psnr_fg", views=(NOVEL,)) -> tuple[float, float, int]:
+    """Mean and standard error of ``a - b`` per subject (the subject's mean ``metric`` over ``views``),
+    on the subjects both results scored; (nan, nan, 0) without any."""
+    def per_subject(r):
+        keep = [n for n in EVAL_VIEWS if n in views or (NOVEL in views and n != INPUT_VIEW)]
+        out = {}
+        for row in r["rows"]:
+            if row["view"] in keep and row.get(metric) is not None and not math.isnan(row[metric]):
+                out.setdefault(row["subject"], []).append(row[metric])
+        return {k: float(np.mean(v)) for k, v in out.items()}
+    pa, pb = per_subject(a), per_subject(b)
+    d = np.array([pa[k] - pb[k] for k in pa if k in pb])
+    if not len(d):
+        return math.nan, math.nan, 0
+    se = float(d.std(ddof=1) / math.sqrt(len(d))) if len(d) > 1 else math.nan
+    return float(d.mean()), se, len(d)
+
+
+def _baseline_lines(result: dict) -> list[str]:
+    rows = [("this model", result)] + [(f"baseline: {k.replace('_', ' ')}", r)
+                                       for k, r in result.get("baselines", {}).items()]
+    lines = ["## Against the baselines (same subjects)", "",
+             "| model | novel PSNR fg dB | novel SSIM fg | novel PSNR dB | input view PSNR fg dB | all PSNR dB | "
+             "novel PSNR fg gain over it dB |", "|---|---|---|---|---|---|---|"]
+    for name, r in rows:
+        nv, fr, al = r["per_view"][NOVEL], r["per_view"][INPUT_VIEW], r["per_view"]["all"]
+        gain = "-"
+        if r is not result:
+            d, se, n = paired_difference(result, r)
+            gain = "n/a" if not n else f"{d:+.2f}" + (f" +- {se:.2f} ({plural(n, 'subject')})" if n > 1 else "")
+        lines.append(f"| {name} | {_fmt(nv['psnr_fg'])} | {_fmt(nv['ssim_fg'])} | {_fmt(nv['psnr'])} | "
+                     f"{_fmt(fr['psnr_fg'])} | {_fmt(al['psnr'])} | {gain} |")
+    return lines + ["", "Gain: mean +- standard error of the per-subject difference of the novel-view foreground "
+                        "PSNR.", ""]
+
+
 def write_report(result: dict, out: Path, title: str, notes: list[str] = ()) -> tuple[Path, Path]:
-    """Markdown table + JSON of an :func:`evaluate` result."""
+    """Markdown tables + JSON of an :func:`evaluate` result (with ``baselines`` when it holds them)."""
     out.mkdir(parents=True, exist_ok=True)
-    fmt = lambda v: "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.4f}"  # noqa: E731
-    lines = [f"# {title}", "", f"{result['subjects']} subjects evaluated, {len(result['skipped_subjects'])} skipped "
-             f"(no view within {YAW_TOLERANCE:g} deg of front/left/back/right).", "",
-             "| view | PSNR dB | SSIM | LPIPS | CSIM | APD deg |", "|---|---|---|---|---|---|"]
+    lines = [f"# {title}", "", f"{plural(result['subjects'], 'subject')} evaluated, "
+             f"{len(result['skipped_subjects'])} skipped (no view within {YAW_TOLERANCE:g} deg of "
+             f"front/left/back/right). The {INPUT_VIEW} view is the input; {NOVEL}: left, back and right. "
+             f"fg: over the foreground (target or render alpha >= {FOREGROUND_ALPHA:g}).", "",
+             "| view | PSNR dB | PSNR fg dB | SSIM | SSIM fg | LPIPS | CSIM | APD deg |", "|---|---|---|---|---|---|---|---|"]
     for name, m in result["per_view"].items():
-        lines.append(f"| {name} | " + " | ".join(fmt(m[k]) for k in ("psnr", "ssim", "lpips", "csim", "apd")) + " |")
+        lines.append(f"| {name} | " + " | ".join(_fmt(m[k]) for k in METRICS) + " |")
     counted = result["per_view"]["all"]["counted"]
     lines += ["", "Counted views: " + ", ".join(f"{k} {v}" for k, v in counted.items()) + ".",
               f"Reconstruction {result['reconstruct_s_median'] * 1000:.1f} ms (median, one forward pass); "
               f"render {result['render_ms_per_view_median']:.1f} ms per view (median).", ""]
     if "csim_between_subjects" in result:
-        lines += [f"CSIM between the front targets of different subjects: {fmt(result['csim_between_subjects'])} "
+        lines += [f"CSIM between the front targets of different subjects: {_fmt(result['csim_between_subjects'])} "
                   f"({plural(result['csim_between_subjects_faces'], 'face')}): what an identity-blind prediction "
                   "scores; CSIM above it shows identity.", ""]
+    if result.get("baselines"):
+        lines += _baseline_lines(result)
     lines += ["\n\n".join(notes)] if notes else []  # each note a paragraph of its own
     md, js = out / "eval.md", out / "eval.json"
     atomic_write(md, ("\n".join(lines) + "\n").encode())

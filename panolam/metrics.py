@@ -80,13 +80,7 @@ def psnr(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = N
     """
     _check_pair(pred, target)
     err = (pred - target).square()
-    if mask is None:
-        mse = err.mean(dim=(1, 2, 3))
-    else:
-        m = (mask if mask.dim() == 4 else mask.unsqueeze(1)).to(err.dtype).expand_as(err)
-        total = m.sum(dim=(1, 2, 3))
-        mse = (err * m).sum(dim=(1, 2, 3)) / total
-        mse = torch.where(total > 0, mse, torch.full_like(mse, math.nan))
+    mse = err.mean(dim=(1, 2, 3)) if mask is None else _masked_mean(err, mask)
     return -10.0 * torch.log10(mse.clamp_min(10.0 ** (-PSNR_MAX_DB / 10)))
 
 
@@ -97,8 +91,25 @@ def _gaussian_window(channels: int, dtype: torch.dtype, device: torch.device) ->
     return (g[:, None] * g[None, :]).expand(channels, 1, SSIM_WINDOW, SSIM_WINDOW)
 
 
-def ssim(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """SSIM of images in [0, 1], shape (B,); differentiable. Needs H, W >= 11 (see module docstring)."""
+def _weights(mask: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """A (B, 1, H, W) or (B, H, W) mask as float weights broadcast to ``like`` (B, C, H, W)."""
+    return (mask if mask.dim() == 4 else mask.unsqueeze(1)).to(like.dtype).expand_as(like)
+
+
+def _masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean of ``values`` (B, C, H, W) per image, weighted by ``mask``; nan where the mask is empty."""
+    m = _weights(mask, values)
+    total = m.sum(dim=(1, 2, 3))
+    mean = (values * m).sum(dim=(1, 2, 3)) / total.clamp_min(1e-12)
+    return torch.where(total > 0, mean, torch.full_like(mean, math.nan))
+
+
+def ssim(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """SSIM of images in [0, 1], shape (B,); differentiable. Needs H, W >= 11 (see module docstring).
+
+    mask: optional (B, 1, H, W) or (B, H, W) weights; the SSIM map (valid region) is then averaged
+    over the masked pixels only (the mask is cropped like the map). An empty mask gives nan.
+    """
     _check_pair(pred, target)
     b, c, h, w = pred.shape
     if min(h, w) < SSIM_WINDOW:
@@ -110,7 +121,12 @@ def ssim(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     var_x, var_y, cov = xx - mu_x ** 2, yy - mu_y ** 2, xy - mu_x * mu_y
     num = (2 * mu_x * mu_y + SSIM_C1) * (2 * cov + SSIM_C2)
     den = (mu_x ** 2 + mu_y ** 2 + SSIM_C1) * (var_x + var_y + SSIM_C2)
-    return (num / den).mean(dim=(1, 2, 3))
+    value = num / den
+    if mask is None:
+        return value.mean(dim=(1, 2, 3))
+    r = SSIM_WINDOW // 2
+    m = mask if mask.dim() == 4 else mask.unsqueeze(1)
+    return _masked_mean(value, m[..., r:h - r, r:w - r])
 
 
 def dssim_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

@@ -1,7 +1,8 @@
 """Training on a curated manifest: losses of the paper, exact resume, data parallel over processes.
 
-Per sample, N_v views of one subject: the first is the input, the others are the targets
-(:mod:`panolam.data`). Loss (paper Eq. 9): ``lambda_3 L_rgb(G) + lambda_4 L_rgb(ST) + lambda_5 L_mask
+Per sample, N_v views of one subject: the first is the input (drawn from the frontal views or from
+any, ``input_views``), and the renders are supervised on all N_v views or on the others
+(``targets``; :mod:`panolam.data`). Loss (paper Eq. 9): ``lambda_3 L_rgb(G) + lambda_4 L_rgb(ST) + lambda_5 L_mask
 + lambda_6 L_st`` with ``L_rgb = lambda_1 L1 + lambda_2 L_perceptual`` on the coarse and dense
 Gaussian renders (G) and on the tri-plane branch's own render (ST, over black at its resolution,
 of the first ``triplane_render_views`` targets: the views are drawn at random, so any few are a fair
@@ -11,7 +12,7 @@ predicted planes and the GAN's planes when the dataset stores them (``--save-pla
 perceptual term is LPIPS when its weights are given, otherwise D-SSIM ``(1 - SSIM) / 2`` (the log
 says which).
 
-Optimizer: Adam, linear warm-up then cosine decay, gradient-norm clipping; bf16 autocast of the
+Optimizer: Adam, linear warm-up then cosine decay to ``lr_floor`` of the peak, gradient-norm clipping; bf16 autocast of the
 network on CUDA (:func:`bf16_autocast`; renders and losses stay float32). A step reads from the
 device once, after the update: the loss, its parts, the gradient norm and the largest parameter (a
 non-finite loss, gradient or parameter stops the run before anything is saved); several processes
@@ -92,8 +93,9 @@ def compute_losses(model: PanoLAM, batch: Views, cfg: TrainConfig, perceptual: P
     returns (total loss, named parts, renders for logging)."""
     core = model.module if hasattr(model, "module") else model
     inputs = batch.inputs if batch.inputs is not None else batch.images[:, 0]
-    targets, masks = batch.images[:, 1:], batch.masks[:, 1:]
-    cam2world, K = batch.cam2world[:, 1:], batch.K[:, 1:]
+    first = first_target(cfg)
+    targets, masks = batch.images[:, first:], batch.masks[:, first:]
+    cam2world, K = batch.cam2world[:, first:], batch.K[:, first:]
     with torch.autocast(inputs.device.type, dtype=torch.bfloat16, enabled=autocast):
         rec: Reconstruction = model(inputs)
     res = cfg.render_resolution
@@ -115,8 +117,10 @@ def compute_losses(model: PanoLAM, batch: Views, cfg: TrainConfig, perceptual: P
     if rec.planes is not None:
         planes = rec.planes.float()
         r, n = core.cfg.triplane_render_resolution, core.cfg.triplane_render_views
-        rgb_t, _ = core.render_triplane(planes, cam2world[:, :n], K[:, :n], batch.radius[:, 1:][:, :n], r)
-        premultiplied = _flat(targets[:, :n] - (1 - masks[:, :n]) * bg.view(1, 1, 3, 1, 1))
+        # the first n views after the input: drawn at random, whatever the targets of the Gaussian renders
+        rgb_t, _ = core.render_triplane(planes, batch.cam2world[:, 1:][:, :n], batch.K[:, 1:][:, :n],
+                                        batch.radius[:, 1:][:, :n], r)
+        premultiplied = _flat(batch.images[:, 1:][:, :n] - (1 - batch.masks[:, 1:][:, :n]) * bg.view(1, 1, 3, 1, 1))
         target_t = F.interpolate(premultiplied, size=(r, r), mode="area").view_as(rgb_t)
         parts["l1_triplane"] = (rgb_t - target_t).abs().mean()
         parts["perceptual_triplane"] = perceptual(_flat(rgb_t).clamp(0, 1), _flat(target_t).clamp(0, 1))
@@ -134,12 +138,17 @@ def compute_losses(model: PanoLAM, batch: Views, cfg: TrainConfig, perceptual: P
 
 
 # -- schedule --------------------------------------------------------------------------------
+def first_target(cfg: TrainConfig) -> int:
+    """Index of the first supervised view of a sample: 0 (the input view among the targets) or 1."""
+    return 0 if cfg.targets == "all" else 1
+
+
 def lr_factor(step: int, cfg: TrainConfig) -> float:
-    """Linear warm-up to 1, then cosine decay to 0 at ``cfg.steps``."""
+    """Linear warm-up to 1, then cosine decay to ``cfg.lr_floor`` at ``cfg.steps``."""
     if step < cfg.warmup_steps:
         return (step + 1) / cfg.warmup_steps
     progress = (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps)
-    return 0.5 * (1 + math.cos(math.pi * min(1.0, progress)))
+    return cfg.lr_floor + (1 - cfg.lr_floor) * 0.5 * (1 + math.cos(math.pi * min(1.0, progress)))
 
 
 def training_data(dataset: TrainingSamples, manifest) -> dict:
@@ -173,7 +182,7 @@ def check_start(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, r
     elif (out / CHECKPOINT).exists():
         raise UserError(f"{out} already holds a run; pass --resume to continue it or choose another --out")
     dataset = TrainingSamples(data, manifest, "train", cfg.views_per_sample, cfg.render_resolution, cfg.seed,
-                              input_resolution=model_cfg.image_size)
+                              input_resolution=model_cfg.image_size, input_views=cfg.input_views)
     data_info = training_data(dataset, manifest)
     if state is not None and state.get("data", {}).get("manifest_sha256") not in (None, data_info["manifest_sha256"]):
         raise UserError(f"{out}: this run trains on manifest {state['data'].get('manifest_version')!r} "
@@ -299,7 +308,7 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
                     if k != "step":
                         writer.add_scalar(f"train/{k}", v, step)
             if step % cfg.image_every == 0 or step == 1:
-                writer.add_image("train/input|dense|coarse|target", _grid(batch, renders), step)
+                writer.add_image("train/input|dense|coarse|target", _grid(batch, renders, first_target(cfg)), step)
         stop = out_of_time or (until is not None and step >= until)
         if rank == 0 and (step % cfg.checkpoint_every == 0 or step == cfg.steps or stop):
             with clock.checkpoint():
@@ -379,9 +388,9 @@ class _Clock:
         self.writing_s += self.checkpoint_s
 
 
-def _grid(batch: Views, renders: dict) -> torch.Tensor:
-    """One image (3, H, W): rows input | dense | coarse | target for the first sample's targets."""
-    targets = batch.images[0, 1:]
+def _grid(batch: Views, renders: dict, first: int) -> torch.Tensor:
+    """One image (3, H, W): rows input | dense | coarse | target for the first sample's targets (views ``first:``)."""
+    targets = batch.images[0, first:]
     size = targets.shape[-1]
     inp = resized(batch.images[:1, 0], size).expand(len(targets), -1, -1, -1)
     rows = [inp, renders["dense"][0]] + ([renders["coarse"][0]] if "coarse" in renders else []) + [targets]

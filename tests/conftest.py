@@ -41,6 +41,18 @@ def tiny_spec(out, **overrides) -> JobSpec:
     return JobSpec(**fields)
 
 
+def curated_dataset(root, subjects: int, views: int, test_count: int) -> tuple[Path, Path]:
+    """A tiny procedural dataset under ``root/ds`` and its manifest (no verdicts, ``test_count`` held
+    out): (dataset folder, manifest path)."""
+    from labeling_tool.manifest import compile_manifest, write_manifest
+
+    root = Path(root)
+    data = root / "ds"
+    run_sample(tiny_spec(data, subjects=subjects, views=views), progress=False)
+    (root / "labels").mkdir()
+    return data, write_manifest(compile_manifest(data, root / "labels", test_count=test_count), root / "m-v1.json")
+
+
 def all_files(root) -> dict:
     """{relative path: bytes} of every file under root."""
     root = Path(root)

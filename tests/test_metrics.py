@@ -49,6 +49,25 @@ def test_ssim_matches_skimage_gaussian():
     assert torch.allclose(ssim(x.float(), y.float()).double(), ours, atol=1e-4)
 
 
+def test_masked_ssim_averages_the_map_over_the_mask_only():
+    skm = pytest.importorskip("skimage.metrics", reason="scikit-image is needed for the reference SSIM map")
+    x = images(seed=4)
+    y = x.clone()
+    y[:, :, :, 30:] = (0.5 * y[:, :, :, 30:] + 0.25)  # the right part differs, the left part is identical
+    mask = torch.zeros(2, 1, 40, 48)
+    mask[..., :20] = 1
+    assert torch.allclose(ssim(x, y, mask), torch.ones(2, dtype=x.dtype))  # 20 + 5 < 30: windows see x = y only
+    assert torch.allclose(ssim(x, y, torch.ones(2, 40, 48)), ssim(x, y))
+    mask[..., 25:] = 1
+    _, full = skm.structural_similarity(x[0].permute(1, 2, 0).numpy(), y[0].permute(1, 2, 0).numpy(),
+                                        gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
+                                        data_range=1, channel_axis=2, full=True)
+    keep = mask[0, 0, 5:-5, 5:-5].numpy() > 0
+    expected = full[5:-5, 5:-5][keep].mean()
+    assert abs(ssim(x, y, mask)[0].item() - expected) < 1e-4 and ssim(x, y, mask)[0] < 0.99
+    assert torch.isnan(ssim(x, y, torch.zeros(2, 40, 48))).all()
+
+
 def test_ssim_identity_gradient_and_small_images():
     x = images(b=1)
     assert torch.allclose(ssim(x, x), torch.ones(1, dtype=x.dtype))

@@ -13,7 +13,7 @@ import pytest
 from panolam import cli
 from panolam.config import ModelConfig, TrainConfig
 from panolam.infer import write_all
-from panolam.options import flag, option_fields
+from panolam.options import flag, option_fields, unit_interval
 
 
 def _fresh(code: str) -> str:
@@ -48,6 +48,8 @@ def _example(f: dataclasses.Field):
         return [value], value
     if f.metadata["nargs"] == 2:
         return ["0.5", "0.75"], (0.5, 0.75)
+    if f.metadata["parse"] is unit_interval:
+        return ["0.5"], 0.5
     if f.metadata["parse"] is None:
         return ["some/file"], "some/file"
     value = (f.default or 1) + 3

@@ -17,14 +17,13 @@ import torch
 
 from datagen.errors import DatasetError
 from datagen.manifests import read_manifest
-from labeling_tool.manifest import compile_manifest, write_manifest
 from panolam import train as train_module
 from panolam.data import TrainingSamples, collate
 from panolam.checkpoints import load_model, read_checkpoint, save_checkpoint
 from panolam.config import TrainConfig, preset
 from panolam.train import TrainingError, train
 from datagen.pipeline import run_sample
-from tests.conftest import tiny_spec
+from tests.conftest import curated_dataset, tiny_spec
 from tests.test_model import SMALL
 
 MODEL = preset("tiny", **SMALL)
@@ -35,12 +34,7 @@ FAST = TrainConfig(steps=4, batch_size=1, views_per_sample=3, render_resolution=
 @pytest.fixture(scope="module")
 def curated(tmp_path_factory):
     """8 views (front/left/back/right among them) of 4 subjects; one held out for test."""
-    root = tmp_path_factory.mktemp("curated")
-    data = root / "ds"
-    run_sample(tiny_spec(data, subjects=4, views=8), progress=False)
-    (root / "labels").mkdir()
-    manifest = write_manifest(compile_manifest(data, root / "labels", test_count=1), root / "m-v1.json")
-    return data, manifest
+    return curated_dataset(tmp_path_factory.mktemp("curated"), subjects=4, views=8, test_count=1)
 
 
 def test_sample_choice_is_a_pure_function_of_seed_and_index(curated):
@@ -54,6 +48,46 @@ def test_sample_choice_is_a_pure_function_of_seed_and_index(curated):
     item = a[0]
     assert item.images.shape == (3, 3, 16, 16) and item.masks.shape == (3, 1, 16, 16)
     assert 0 <= float(item.images.min()) and float(item.images.max()) <= 1
+
+
+def test_frontal_input_policy_draws_inputs_near_the_front_and_targets_anywhere(curated):
+    from datagen.cameras import FRONTAL_YAW_DEG
+    data, manifest = curated
+    a = TrainingSamples(data, manifest, "train", 3, 16, seed=5, input_views="frontal")
+    yaws = np.array([0.0, 45.0, 90.0, 135.0, 180.0, 225.0, 290.0, 330.0])  # frontal: views 0 and 7
+    picks = [a.view_choice(g, 8, yaws) for g in range(40)]
+    assert picks == [a.view_choice(g, 8, yaws) for g in range(40)]  # a pure function of (seed, g)
+    assert {p[0] for p in picks} == {0, 7} and all(len(set(p)) == 3 for p in picks)
+    assert {v for p in picks for v in p[1:]} == set(range(8))
+    assert a.view_choice(0, 3, np.array([120.0, 180.0, 300.0]))[0] == 2  # none frontal: the nearest to the front
+    item = a[3]
+    assert abs((float(item.yaw_deg[0]) + 180) % 360 - 180) <= FRONTAL_YAW_DEG
+
+
+def test_the_learning_rate_decays_to_its_floor_and_old_runs_keep_their_recipe():
+    cfg = TrainConfig(steps=100, warmup_steps=10, lr_floor=0.1)
+    factors = [train_module.lr_factor(s, cfg) for s in range(120)]
+    assert factors[9] == 1.0 and abs(factors[99] - 0.1) < 1e-3 and min(factors[10:]) == pytest.approx(0.1)
+    assert all(a >= b for a, b in zip(factors[9:], factors[10:]))
+    old = {k: v for k, v in cfg.to_dict().items() if k not in ("input_views", "targets", "lr_floor")}
+    legacy = TrainConfig.from_dict(old)  # a checkpoint written before these settings existed
+    assert (legacy.input_views, legacy.targets, legacy.lr_floor) == ("any", "others", 0.0)
+    assert train_module.lr_factor(99, legacy) < 1e-3 and train_module.first_target(legacy) == 1
+    assert TrainConfig.from_dict(cfg.to_dict()) == cfg
+
+
+def test_the_input_view_is_among_the_targets_unless_asked_otherwise(curated):
+    data, manifest = curated
+    samples = TrainingSamples(data, manifest, "train", 3, 16, seed=0, input_resolution=MODEL.image_size)
+    batch = collate([samples[0]])
+    torch.manual_seed(0)
+    from panolam.model import PanoLAM
+    model = PanoLAM(MODEL)
+    for targets, rendered in (("all", 3), ("others", 2)):
+        cfg = dataclasses.replace(FAST, targets=targets)
+        _, parts, renders = train_module.compute_losses(model, batch, cfg, train_module.Perceptual(cfg, "cpu"))
+        assert renders["dense"].shape[:2] == (1, rendered) and renders["triplane"].shape[1] == 2
+        assert all(torch.isfinite(torch.as_tensor(v)).all() for v in parts.values())
 
 
 def test_input_view_keeps_the_stored_detail_targets_are_resized(curated):
@@ -191,10 +225,16 @@ def test_eval_and_cli_end_to_end(curated, tmp_path):
                         "--ckpt", str(run), "--no-faces"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     report = (run / "eval-test" / "eval.md").read_text()
-    assert "| front |" in report and "| back |" in report and "1 subjects evaluated" in report
+    assert "| front |" in report and "| back |" in report and "| novel |" in report and "1 subject evaluated" in report
+    assert "| baseline: untrained |" in report and "| baseline: mean colour template |" in report
+    assert "trained with --input-views frontal" in report and "--targets all" in report
+    assert "NOTE: 1 test subject only" in report
     import json
     result = json.loads((run / "eval-test" / "eval.json").read_text())
     assert 5 < result["per_view"]["all"]["psnr"] < 60 and len(result["rows"]) == 4
+    for r in (result, *result["baselines"].values()):
+        assert 0 < r["per_view"]["novel"]["psnr_fg"] < r["per_view"]["all"]["psnr"]  # the background is the easy part
+        assert r["per_view"]["novel"]["counted"]["psnr_fg"] == 3 and 0 < r["per_view"]["all"]["ssim_fg"] < 1
 
 
 def test_eval_asks_the_face_tools_for_csim_on_front_views_and_apd_on_all(curated):
@@ -438,17 +478,17 @@ def damaged(curated, tmp_path):
 
 
 def test_training_checks_its_shards_first_and_remembers_those_that_passed(damaged, monkeypatch):
-    import datagen.verify as verify
+    import datagen.shards as shards
     data, manifest, tar, _ = damaged
-    (data / verify.SHARD_CHECKS).unlink(missing_ok=True)  # as remembered by the copied dataset
+    (data / shards.SHARD_CHECKS).unlink(missing_ok=True)  # as remembered by the copied dataset
     hashed = []
-    real = verify.sha256_file
-    monkeypatch.setattr(verify, "sha256_file", lambda p: hashed.append(p) or real(p))
+    real = shards.sha256_file
+    monkeypatch.setattr(shards, "sha256_file", lambda p: hashed.append(p) or real(p))
     TrainingSamples(data, manifest, "train", 3, 16, 0)
-    assert tar in hashed and (data / verify.SHARD_CHECKS).exists()
+    assert tar in hashed and (data / shards.SHARD_CHECKS).exists()
     hashed.clear()
     TrainingSamples(data, manifest, "train", 3, 16, 0)
-    assert hashed == []  # the second time costs a stat per shard
+    assert hashed == [data / "index.json"]  # the second time costs a stat per shard (and the index's hash)
     blob = bytearray(tar.read_bytes())
     blob[700] ^= 0xFF  # one flipped bit pattern, same size: only the hash can tell
     st = tar.stat()
