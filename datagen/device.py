@@ -7,6 +7,7 @@ queued before it, a host sync in the middle of the work. :func:`constant` pays t
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 from typing import TYPE_CHECKING
 
@@ -74,3 +75,19 @@ def ray_task_device(gpu_ids: list, visible: str | None) -> str:
     first = str(gpu_ids[0])
     listed = [v.strip() for v in visible.split(",")] if visible else None
     return f"cuda:{listed.index(first) if listed else int(first)}"
+
+
+@contextlib.contextmanager
+def one_cpu_thread():
+    """Torch's CPU ops on one thread inside the block (the thread count is restored after).
+
+    Transcendental ops (sin, exp, atan2, ...) compute the body of each thread's slice with vector
+    code and its ragged end with scalar code, which round differently in the last bit; where the
+    slices start depends on the thread count. One thread gives the same bits on any machine."""
+    import torch
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)

@@ -3,7 +3,9 @@
 ``<dataset>/preflags.json``::
 
     {"format": "panolam-preflags/1", "dataset_index_sha256",
-     "detectors": {name: {"threshold", "measure_threshold", "description"}},
+     "detectors": {name: {"threshold", "measure_threshold", "calibrated_cut", "false_alarm_share",
+                          "description"}},
+     "calibration": {"false_alarm_rate", "null_quantiles", "min_subjects", "null_rounds"},
      "summary": {"subjects", "flagged", "per_detector", "skipped_shards"},
      "timing": {...},
      "subjects": [{"subject", "shard", "score", "flags", "detectors": {name: {"score", "why", "value"?}}}, ...]}
@@ -11,6 +13,13 @@
 Subjects are sorted worst first; ``score`` is the largest detector score, ``flags`` the detectors
 whose score is at least their threshold. ``dataset_index_sha256`` ties the report to the dataset it
 scored (:func:`is_stale`). ``labeling_tool.preflags`` computes the reports.
+
+Each detector's ``threshold`` is the score that flags (0.5); ``measure_threshold`` its own threshold on
+what it measures; ``calibrated_cut`` the cut this dataset's calibration set, in units of that
+threshold (1: unchanged); ``false_alarm_share`` its part of ``calibration.false_alarm_rate``, the
+share of clean subjects the union of detectors may flag (cut 1 and share None when scored
+uncalibrated). ``calibration`` names the rule's settings (``labeling_tool/preflags/detector.py``):
+the quantiles its null fit spans, the fewest subjects a fit needs and its rounds.
 """
 from __future__ import annotations
 

@@ -15,7 +15,8 @@ LABEL_HEIGHT = 30
 TITLE_HEIGHT = 26
 
 
-def _font(size: int):
+def font(size: int):
+    """Pillow's default font at ``size`` px (its bitmap font on a Pillow without sized fonts)."""
     try:
         return ImageFont.load_default(size=size)
     except TypeError:  # older Pillow without sized default fonts
@@ -49,8 +50,8 @@ def contact_sheet(root, subject: str, columns: int = 8, with_mask_depth: bool = 
     draw = ImageDraw.Draw(sheet)
     title = (f"{Path(root).name}  {sample.key}  generator={meta['generator']['name']}  protocol={meta['protocol']}"
              f"  {res}x{res}  {n} views")
-    draw.text((6, 5), title, fill=(235, 235, 235), font=_font(14))
-    small = _font(11)
+    draw.text((6, 5), title, fill=(235, 235, 235), font=font(14))
+    small = font(11)
     for i, view in enumerate(meta["views"]):
         r, c = divmod(i, columns)
         x0, y0 = c * cell_w, TITLE_HEIGHT + r * cell_h

@@ -95,6 +95,9 @@ def build_parser() -> OneLineParser:
     p.add_argument("--no-faces", action="store_true", help="skip CSIM/APD (they need dlib)")
     p.add_argument("--no-baselines", action="store_true",
                    help="skip the untrained model and the mean-colour template (each costs as much as the model)")
+    p.add_argument("--gallery", type=at_least(0), metavar="N",
+                   help="subjects in gallery.png: the input, the reconstruction and the truth from the front, left, "
+                        "back and right (default: 8; 0: none)")
     _model_path_options(p, where_now=True)
     p.add_argument("--device", default="cpu", help=DEVICE_HELP)
     return parser
@@ -183,7 +186,7 @@ def cmd_eval(args) -> int:
     from datagen.manifests import read_manifest
     from .checkpoints import model_from_checkpoint, read_checkpoint
     from .data import accepted_subjects
-    from .evaluate import baselines, evaluate, write_report
+    from .evaluate import GALLERY_SUBJECTS, baselines, evaluate, write_gallery, write_report
     _check_device(args)
     manifest = read_manifest(args.manifest)
     state = read_checkpoint(args.ckpt)
@@ -228,14 +231,22 @@ def cmd_eval(args) -> int:
                      "front views whose target has a face dlib finds (the render is read at the target's face box); "
                      "APD counts the views where a face is found in both, which blurry renders often miss.")
     options = dict(resolution=args.resolution, lpips=lpips, limit=args.limit)
-    result = evaluate(model, args.data, manifest, args.split, faces=faces, **options)
+    pictures = []
+    result = evaluate(model, args.data, manifest, args.split, faces=faces, gallery=pictures,
+                      gallery_subjects=GALLERY_SUBJECTS if args.gallery is None else args.gallery, **options)
     if not args.no_baselines:
         result["baselines"] = baselines(model, trained.seed, args.data, manifest, args.split, **options)
     out = Path(args.out) if args.out else Path(args.ckpt if Path(args.ckpt).is_dir() else Path(args.ckpt).parent) / \
         f"eval-{args.split}"
+    written = []
+    if pictures:
+        out.mkdir(parents=True, exist_ok=True)
+        written.append(write_gallery(pictures, out / "gallery.png"))
+        notes.append(f"![{plural(len(pictures), 'subject')}: the input, ours and the truth from the front, left, back "
+                     "and right](gallery.png)")
     md, js = write_report(result, out, f"PanoLAM evaluation: {args.split} split of {args.data}", notes)
     print(md.read_text())
-    print(f"wrote {md} and {js}")
+    print("wrote " + ", ".join(str(p) for p in [md, js, *written]))
     return 0
 
 

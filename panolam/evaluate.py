@@ -16,9 +16,13 @@ view, medians.
 Baselines (:func:`baselines`) give every figure its floor: the untrained model (same config, same
 seeded initialisation as the run's step 0) and :class:`MeanColourTemplate`, the template rendered
 opaque in the mean foreground colour of the training subjects.
+
+The gallery (:func:`write_gallery`) shows what the numbers mean: per subject the input, the
+reconstruction seen from the front, left, back and right, and the ground truth of those views.
 """
 from __future__ import annotations
 
+import io
 import json
 import math
 import statistics
@@ -28,9 +32,11 @@ from types import SimpleNamespace
 
 import numpy as np
 import torch
+from PIL import Image, ImageDraw
 
 from datagen.device import constant
 from datagen.files import atomic_write
+from datagen.preview import font
 from datagen.shards import read_fields, tar_path, to_uint8
 from datagen.text import plural
 
@@ -47,6 +53,8 @@ YAW_TOLERANCE = 10.0
 FOREGROUND_ALPHA = 0.5
 METRICS = ("psnr", "psnr_fg", "ssim", "ssim_fg", "lpips", "csim", "apd")
 COLOUR_SUBJECTS = 32  # training subjects averaged for the mean-colour template
+GALLERY_SUBJECTS = 8  # subjects in eval's gallery.png (the first of the split)
+GALLERY_TILE = 128  # px of a gallery tile at least (smaller renders are enlarged, nearest neighbour)
 
 
 def nearest_views(yaw_deg: np.ndarray) -> dict | None:
@@ -73,8 +81,11 @@ def _mean(values):
 
 @torch.no_grad()
 def evaluate(model: PanoLAM, data, manifest: dict, split: str = "test", resolution: int | None = None,
-             lpips=None, faces=None, limit: int | None = None, progress=None) -> dict:
-    """Metrics per subject and view plus their means; ``faces``: the :mod:`datagen.faces` module (CSIM, APD) or None."""
+             lpips=None, faces=None, limit: int | None = None, progress=None, gallery: list | None = None,
+             gallery_subjects: int = GALLERY_SUBJECTS) -> dict:
+    """Metrics per subject and view plus their means; ``faces``: the :mod:`datagen.faces` module (CSIM, APD) or None.
+    ``gallery``: a list that receives, for the first ``gallery_subjects`` subjects, (subject, input,
+    renders, targets) as uint8 HxWx3 images (renders and targets in ``EVAL_VIEWS`` order)."""
     device = next(model.parameters()).device
     subjects = accepted_subjects(manifest, split, data)[:limit]
     check_subject_shards(data, subjects)
@@ -106,8 +117,11 @@ def evaluate(model: PanoLAM, data, manifest: dict, split: str = "test", resoluti
         scores = [psnr(pred, images), psnr(pred, images, fg), ssim(pred, images), ssim(pred, images, fg)]
         scores += [lpips(pred, images).flatten()] if lpips is not None else []
         p, p_fg, s, s_fg, *lp = torch.stack(scores).cpu().tolist()  # one read per subject
-        if faces is not None:  # (2, views, H, W, 3): renders and targets, copied to the host together
+        keep = gallery is not None and len(gallery) < gallery_subjects
+        if faces is not None or keep:  # (2, views, H, W, 3): renders and targets, copied to the host together
             pictures = to_uint8(torch.stack([pred, images]).permute(0, 1, 3, 4, 2).cpu().numpy())
+        if keep:
+            gallery.append((key, to_uint8(meta_views.inputs.permute(1, 2, 0).cpu().numpy()), pictures[0], pictures[1]))
         for j, name in enumerate(picked):
             row = {"subject": key, "view": name, "psnr": p[j], "psnr_fg": p_fg[j], "ssim": s[j], "ssim_fg": s_fg[j],
                    "lpips": lp[0][j] if lp else None}
@@ -225,6 +239,35 @@ def _baseline_lines(result: dict) -> list[str]:
                      f"{_fmt(fr['psnr_fg'])} | {_fmt(al['psnr'])} | {gain} |")
     return lines + ["", "Gain: mean +- standard error of the per-subject difference of the novel-view foreground "
                         "PSNR.", ""]
+
+
+def write_gallery(entries: list, path: Path) -> Path:
+    """A PNG of :func:`evaluate`'s ``gallery`` entries: a row per subject with the input, the renders
+    and the targets (front, left, back, right), columns labelled; written atomically."""
+    if not entries:
+        raise ValueError("no gallery entries")
+    res = entries[0][2].shape[1]
+    tile = res * max(1, -(-GALLERY_TILE // res))
+    names = list(EVAL_VIEWS)
+    heads = ["input"] + [f"ours {n}" for n in names] + [f"truth {n}" for n in names]
+    gap, top = 6, 22
+    width = len(heads) * tile + (len(heads) - 1) * gap + 2 * gap  # a wider gap between the three groups
+    sheet = Image.new("RGB", (width, top + len(entries) * (tile + 18)), (30, 30, 30))
+    draw = ImageDraw.Draw(sheet)
+    label = font(13)
+    x = [i * (tile + gap) + gap * ((i > 0) + (i > len(names))) for i in range(len(heads))]
+    for x0, head in zip(x, heads):
+        draw.text((x0 + 4, 4), head, fill=(235, 235, 235), font=label)
+    for row, (key, photo, renders, targets) in enumerate(entries):
+        y0 = top + row * (tile + 18)
+        for x0, im in zip(x, [photo, *renders, *targets]):
+            sheet.paste(Image.fromarray(im).resize((tile, tile), Image.NEAREST if im.shape[0] <= tile else Image.BILINEAR),
+                        (x0, y0))
+        draw.text((x[0] + 4, y0 + tile + 2), key, fill=(200, 200, 200), font=label)
+    buf = io.BytesIO()
+    sheet.save(buf, format="PNG")
+    atomic_write(path, buf.getvalue())
+    return path
 
 
 def write_report(result: dict, out: Path, title: str, notes: list[str] = ()) -> tuple[Path, Path]:

@@ -19,6 +19,7 @@ from datagen.errors import DatasetError
 from datagen.manifests import read_manifest
 from panolam import train as train_module
 from panolam.data import TrainingSamples, collate
+from panolam.model import PanoLAM
 from panolam.checkpoints import load_model, read_checkpoint, save_checkpoint
 from panolam.config import TrainConfig, preset
 from panolam.train import TrainingError, train
@@ -229,12 +230,36 @@ def test_eval_and_cli_end_to_end(curated, tmp_path):
     assert "| baseline: untrained |" in report and "| baseline: mean colour template |" in report
     assert "trained with --input-views frontal" in report and "--targets all" in report
     assert "NOTE: 1 test subject only" in report
+    assert "](gallery.png)" in report and str(run / "eval-test" / "gallery.png") in r.stdout
     import json
     result = json.loads((run / "eval-test" / "eval.json").read_text())
     assert 5 < result["per_view"]["all"]["psnr"] < 60 and len(result["rows"]) == 4
     for r in (result, *result["baselines"].values()):
         assert 0 < r["per_view"]["novel"]["psnr_fg"] < r["per_view"]["all"]["psnr"]  # the background is the easy part
         assert r["per_view"]["novel"]["counted"]["psnr_fg"] == 3 and 0 < r["per_view"]["all"]["ssim_fg"] < 1
+
+
+def test_eval_gallery_shows_the_input_renders_and_truth(curated, tmp_path):
+    """One row per subject: the input tile is the model's input, the truth tiles are the stored views."""
+    from PIL import Image
+
+    from panolam.data import accepted_subjects
+    from panolam.evaluate import GALLERY_TILE, evaluate, write_gallery
+    data, manifest = curated
+    model = PanoLAM(MODEL).eval()
+    pictures = []
+    evaluate(model, data, read_manifest(manifest), "train", resolution=32, gallery=pictures, gallery_subjects=2)
+    keys = [k for k, _ in accepted_subjects(read_manifest(manifest), "train", data)]
+    assert [p[0] for p in pictures] == keys[:2]
+    key, photo, renders, targets = pictures[0]
+    assert photo.shape == (MODEL.image_size, MODEL.image_size, 3) and renders.shape == targets.shape == (4, 32, 32, 3)
+    assert renders.dtype == targets.dtype == np.uint8 and not np.array_equal(renders, targets)
+    sheet = np.asarray(Image.open(write_gallery(pictures, tmp_path / "g.png")))
+    tile = GALLERY_TILE  # 32 px enlarged 4x
+    assert sheet.shape[0] > 2 * tile and sheet.shape[1] > 9 * tile
+    row = sheet[sheet.shape[0] - 18 - tile: sheet.shape[0] - 18]  # the last row's tiles
+    last = row[:, -tile:]  # truth, right view, enlarged by nearest neighbour
+    np.testing.assert_array_equal(last[::4, ::4], pictures[1][3][3])
 
 
 def test_eval_asks_the_face_tools_for_csim_on_front_views_and_apd_on_all(curated):

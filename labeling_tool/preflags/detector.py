@@ -4,23 +4,36 @@ A detector turns every subject into a score in [0, 1] (``FLAG_AT`` and above fla
 explanation naming the view and the number it measured. Scores only order the review queue;
 nothing is ever deleted. Each detector is one class in its own module, holding its settings.
 
-Calibration of the union (``calibrated_cut``): twelve detectors each at its own threshold add up,
+Calibration of the union (``calibrated_cuts``): twelve detectors each at its own threshold add up,
 so the cut of each is raised, per dataset, until the share of clean subjects the union flags is
-at most ``FALSE_ALARM_RATE``. Each detector gets the tail probability ``FALSE_ALARM_RATE / K``
-(K detectors; the union's share is at most the sum, whatever their dependence). Its null, the
-distribution of its evidence on clean subjects, is estimated from the bulk of the dataset: above
-the median, an exponential tail whose decay is the maximum-likelihood fit to the subjects between
-the median and the 90th percentile, those above the 90th percentile counted as censored there
-(defects, a minority, sit in the top few percent and only say "at least this far"). An exponential
-tail is exact for a Laplace null and conservative for a normal one (a normal's tail is thinner);
-tails heavier than exponential beyond the 90th percentile cannot be seen from the bulk and flag
-more. A dataset whose bulk spreads wide gets a higher cut; one whose bulk is tight, or a point
-mass (most subjects measure nothing), keeps the detector's own threshold, which is the floor.
-Evidence is the ramp's measure in units of the detector's threshold (1 at its own threshold, 0
-where nothing was found), so the fit is linear in what the detector measures, not in the score's
-bent ramp. On synthetic nulls (12 detectors, 64 to 3000 subjects; benchmarks/reports/preflags_tuning.md)
-the union flags 3.1-3.5 % of a Laplace null, 1.9-2.6 % of a Student t with 5 degrees of freedom,
-1.3-1.7 % of a gamma, at most 0.1 % of a normal one.
+at most ``FALSE_ALARM_RATE``; the union's share is at most the sum of the detectors' tail
+probabilities, whatever their dependence, so the rate is split into shares that add up to it.
+
+The null of a detector, the distribution of its evidence on clean subjects, is estimated from the
+bulk of the dataset (``null_tail``): above the median, an exponential tail whose decay is the
+maximum-likelihood fit to the subjects between the median and the 90th percentile, those above
+the 90th percentile counted as censored there (its own defects, a minority, sit in the top few
+percent and only say "at least this far"). The fit leaves out every subject that another detector
+flags: defects of other kinds would otherwise fill the bulk (a haze defect's detached wisps on
+floaters, a quarter of a dataset defective for other reasons). First the others flag at their own
+thresholds, then (``NULL_ROUNDS``) at the cuts this gave: that returns to the fit the clean
+subjects heavy-tailed detectors flag at their own thresholds (a quarter of a Laplace null; a fit to
+the rest alone is noisier and flags more).
+
+The shares: a detector whose null stays below its own threshold with less than an equal share
+(``FALSE_ALARM_RATE / K``, K detectors), a point mass (most subjects measure nothing) or a tight
+bulk, keeps its own threshold, which is the floor, and claims only its fitted tail there; the rest
+of the rate is split equally among the others, each cut where its tail reaches its share.
+Detectors that are not calibrated (absolute counts) and fits of fewer than ``MIN_SUBJECTS``
+subjects claim an equal share. A dataset whose bulk spreads wide gets a higher cut.
+
+An exponential tail is exact for a Laplace null and conservative for a normal one (a normal's tail
+is thinner); tails heavier than exponential beyond the 90th percentile cannot be seen from the bulk
+and flag more, and so does a class of defects above a tenth of the dataset (it lifts its own
+detector's 90th percentile). Evidence is the ramp's measure in units of the detector's threshold
+(1 at its own threshold, 0 where nothing was found), so the fit is linear in what the detector
+measures, not in the score's bent ramp. The union's share on synthetic nulls (12 detectors, 64 to
+3000 subjects) is in benchmarks/reports/preflags_tuning.md.
 """
 from __future__ import annotations
 
@@ -35,6 +48,7 @@ FLAG_AT = 0.5  # a detector flags a subject when its score is at least this
 FALSE_ALARM_RATE = 0.03  # share of clean subjects the union of all detectors may flag, on any dataset
 NULL_QUANTILES = (0.5, 0.9)  # the null's tail starts at the first, the fit is censored at the second
 MIN_SUBJECTS = 20  # fewer measured subjects and a detector keeps its own threshold (too few for a fit)
+NULL_ROUNDS = 2  # fits of each null: without what others flag at their own thresholds, then at their cuts
 
 
 @dataclass
@@ -63,23 +77,73 @@ def evidence(score: float, ratio: float) -> float:
     return 1.0 + (score - FLAG_AT) / (1.0 - FLAG_AT) * (ratio - 1.0)
 
 
-def calibrated_cut(levels, tail: float) -> float:
-    """The evidence (units of the detector's threshold, at least 1) above which a subject of the
-    dataset's null has probability ``tail``: P(x > u + y) = P(x > u) exp(-y / decay) above the
-    median u, decay the censored maximum-likelihood fit (exceedances of u, capped at the 90th
-    percentile c: their sum over the number below c). ``levels``: every measured subject's
-    evidence. 1 with fewer than MIN_SUBJECTS levels or nothing between u and c (a point mass)."""
+def null_tail(levels) -> tuple[float, float, float] | None:
+    """The null's tail above the median u of the finite ``levels`` (evidence): (u, decay, P(x > u)),
+    P(x > u + y) = P(x > u) exp(-y / decay); decay the censored maximum-likelihood fit (exceedances
+    of u capped at the 90th percentile c: their sum over the number below c), 0 for a point mass
+    (nothing between u and c). None with fewer than MIN_SUBJECTS levels."""
     x = np.asarray(levels, dtype=np.float64)
     x = x[np.isfinite(x)]
     if x.size < MIN_SUBJECTS:
-        return 1.0
+        return None
     u, c = np.quantile(x, NULL_QUANTILES)
     above = x[x > u] - u
     events = int((above <= c - u).sum())
-    if events == 0:
+    decay = float(np.minimum(above, c - u).sum()) / events if events else 0.0
+    return float(u), decay, above.size / x.size
+
+
+def tail_beyond(fit: tuple[float, float, float], level: float) -> float:
+    """P(x > ``level``) under the fitted tail ``fit`` (``null_tail``); 0 beyond a point mass, 1 below u."""
+    u, decay, share = fit
+    if level <= u:
         return 1.0
-    decay = float(np.minimum(above, c - u).sum()) / events
-    return max(1.0, float(u + decay * math.log(above.size / x.size / tail)))
+    return share * math.exp(-(level - u) / decay) if decay > 0 else 0.0
+
+
+def calibrated_cut(levels, tail: float) -> float:
+    """The evidence (units of the detector's threshold, at least 1) above which a subject of the
+    null ``levels`` (every measured subject's evidence) has probability ``tail`` (``null_tail``).
+    1 with fewer than MIN_SUBJECTS levels or a point mass."""
+    fit = null_tail(levels)
+    if fit is None or fit[1] == 0.0:
+        return 1.0
+    u, decay, share = fit
+    return max(1.0, u + decay * math.log(share / tail))
+
+
+def calibrated_cuts(levels, own, rate: float, calibrated=None, caps=None) -> tuple[np.ndarray, np.ndarray]:
+    """(cuts, shares): every detector's cut (evidence, at least 1) and its share of ``rate``, the rule
+    of the module docstring. ``levels``: (subjects, detectors) evidence, NaN where not measured;
+    ``own``: True where the detector flags the subject at its own threshold; ``calibrated``:
+    (detectors,), False keeps the own threshold (default all True); ``caps``: the evidence from which
+    a verdict no longer depends on the cut (``recalibrated``: a ramp's ``ratio``, where its score
+    saturates; 0 for a score that is not a ramp; default none)."""
+    x = np.asarray(levels, dtype=np.float64)
+    own = np.asarray(own, dtype=bool)
+    n_det = x.shape[1]
+    cal = np.ones(n_det, bool) if calibrated is None else np.asarray(calibrated, dtype=bool)
+    cap = np.full(x.shape, np.inf) if caps is None else np.asarray(caps, dtype=np.float64)
+    measured = np.isfinite(x)
+    cuts, shares = np.ones(n_det), np.full(n_det, rate / max(1, n_det))
+    for _ in range(NULL_ROUNDS):
+        flagged = own & ((cuts <= 1.0) | (np.where(measured, x, -np.inf) >= np.minimum(cuts, cap)))
+        others = flagged.sum(axis=1, keepdims=True) - flagged
+        nulls, fits = {}, [None] * n_det
+        for k in np.flatnonzero(cal):
+            null = measured[:, k] & (others[:, k] == 0)
+            nulls[k] = x[null if null.sum() >= MIN_SUBJECTS else measured[:, k], k]
+            fits[k] = null_tail(nulls[k])
+        need = [tail_beyond(f, 1.0) if f is not None else rate / n_det for f in fits]
+        budget, left = rate, sorted(range(n_det), key=lambda k: need[k])
+        while left and need[left[0]] < budget / len(left):
+            k = left.pop(0)
+            shares[k], cuts[k] = need[k], 1.0
+            budget -= need[k]
+        for k in left:
+            shares[k] = budget / len(left)
+            cuts[k] = calibrated_cut(nulls[k], shares[k]) if k in nulls else 1.0
+    return cuts, shares
 
 
 def recalibrated(flag: Flag, cut: float) -> float:
@@ -123,7 +187,8 @@ class Detector:
         """The measure's threshold as reported in the report's header."""
         return None
 
-    def header(self, cut: float = 1.0) -> dict:
-        """The report header's entry; ``cut``: the calibrated threshold in units of the measure's own."""
+    def header(self, cut: float = 1.0, share: float | None = None) -> dict:
+        """The report header's entry; ``cut``: the calibrated threshold in units of the measure's own;
+        ``share``: its part of the union's false-alarm rate (None without calibration)."""
         return {"threshold": FLAG_AT, "measure_threshold": self.threshold(), "calibrated_cut": round(cut, 4),
-                "description": self.description}
+                "false_alarm_share": None if share is None else round(share, 6), "description": self.description}

@@ -18,8 +18,8 @@ from datagen.errors import DatasetError
 from datagen.preflags import FORMAT
 from datagen.shards import check_shards, index_sha256, read_index, read_sidecar, shard_index, tar_path
 
-from .detector import (FALSE_ALARM_RATE, FLAG_AT, MIN_SUBJECTS, NULL_QUANTILES, calibrated_cut, evidence,
-                       recalibrated)
+from .detector import (FALSE_ALARM_RATE, FLAG_AT, MIN_SUBJECTS, NULL_QUANTILES, NULL_ROUNDS, calibrated_cuts,
+                       evidence, recalibrated)
 from .learn import learn_from
 from .registry import DETECTORS
 from .views import SubjectViews
@@ -130,7 +130,7 @@ def thumbnails(extracted: dict, report: dict) -> list:
 
 def score(extracted: dict, detectors=DETECTORS, false_alarm_rate: float | None = FALSE_ALARM_RATE) -> dict:
     """Second step: every detector's baseline from the records, its scores, its cut calibrated on the
-    dataset (``detector.calibrated_cut``: the union flags at most ``false_alarm_rate`` of clean
+    dataset (``detector.calibrated_cuts``: the union flags at most ``false_alarm_rate`` of clean
     subjects; None: each detector at its own threshold), then the report (worst first)."""
     pairs = extracted["records"]
     records = [r for _, r in pairs]
@@ -139,12 +139,19 @@ def score(extracted: dict, detectors=DETECTORS, false_alarm_rate: float | None =
     bases = {d.name: d.baseline([r["measured"][d.name] if good else None for r, good in zip(records, ok)])
              for d in detectors}
     names = [d.name for d in detectors]
-    tail = false_alarm_rate / max(1, len(detectors)) if false_alarm_rate else None
     raw = {d.name: [d.score(r["measured"][d.name], bases[d.name], idx, keys) if good else None
                     for idx, (r, good) in enumerate(zip(records, ok))] for d in detectors}
-    cuts = {d.name: calibrated_cut([0.0 if f.ratio is None else evidence(f.score, f.ratio)
-                                    for f in raw[d.name] if f is not None], tail) if d.calibrated and tail else 1.0
-            for d in detectors}
+    cuts, shares = dict.fromkeys(names, 1.0), dict.fromkeys(names)
+    if false_alarm_rate:
+        def matrix(value, dtype=np.float64):  # (subjects, detectors)
+            return np.array([[value(f) for f in raw[n]] for n in names], dtype=dtype).reshape(len(names), -1).T
+
+        c, t = calibrated_cuts(matrix(lambda f: np.nan if f is None else 0.0 if f.ratio is None else
+                                      evidence(f.score, f.ratio)),
+                               matrix(lambda f: f is not None and f.score >= FLAG_AT, bool), false_alarm_rate,
+                               [d.calibrated for d in detectors],
+                               matrix(lambda f: np.inf if f is None else 0.0 if f.ratio is None else f.ratio))
+        cuts, shares = dict(zip(names, c.tolist())), dict(zip(names, t.tolist()))
     subjects = []
     for idx, (shard, r) in enumerate(pairs):
         dets = {}
@@ -168,9 +175,9 @@ def score(extracted: dict, detectors=DETECTORS, false_alarm_rate: float | None =
     return {
         "format": FORMAT,
         "dataset_index_sha256": extracted["index_sha256"],
-        "detectors": {d.name: d.header(cuts[d.name]) for d in detectors},
-        "calibration": {"false_alarm_rate": false_alarm_rate, "tail_per_detector": round(tail, 6) if tail else None,
-                        "null_quantiles": list(NULL_QUANTILES), "min_subjects": MIN_SUBJECTS},
+        "detectors": {d.name: d.header(cuts[d.name], shares[d.name]) for d in detectors},
+        "calibration": {"false_alarm_rate": false_alarm_rate, "null_quantiles": list(NULL_QUANTILES),
+                        "min_subjects": MIN_SUBJECTS, "null_rounds": NULL_ROUNDS},
         "summary": {"subjects": n, "flagged": sum(1 for s in subjects if s["flags"]),
                     "per_detector": {name: sum(1 for s in subjects if name in s["flags"]) for name in names},
                     "skipped_shards": list(extracted.get("skipped_shards", []))},

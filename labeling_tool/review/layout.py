@@ -10,9 +10,10 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from PIL import Image, ImageDraw, ImageFont
+from PIL import Image, ImageDraw
 
 from datagen.errors import UserError
+from datagen.preview import font
 
 from .reader import decode_image, nearest_view
 from .session import REASON_SHORT, verdict_text
@@ -62,10 +63,6 @@ def fit_square(img: np.ndarray, side: int) -> np.ndarray:
 
 
 @lru_cache(maxsize=8)
-def font(size: int) -> ImageFont.FreeTypeFont:
-    return ImageFont.load_default(size=size)
-
-
 def text_size(height: int) -> int:
     """Font size (px) for a window ``height`` px tall."""
     return int(min(20, max(12, height // 62)))

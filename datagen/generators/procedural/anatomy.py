@@ -12,8 +12,8 @@ import torch
 import torch.nn.functional as F
 
 from .params import _oldness
-from .shapes import (_ellipsoid_front_z, _gauss, _local, _smoothstep, _t, _waves, sd_capsule, sd_ellipse_2d,
-                     sd_ellipsoid, sd_sphere, smax, smin)
+from .shapes import (_ellipsoid_front_z, _extrude, _gauss, _local, _segment_2d, _smoothstep, _t, _waves, sd_capsule,
+                     sd_ellipse_2d, sd_ellipsoid, sd_sphere, sd_triangle_2d, smax, smin)
 
 
 def _cranium(P):
@@ -63,25 +63,39 @@ def _face_mass(p, P):
     return smin(d, jaw, 0.04)
 
 
+def _surface_z(P, xy, z_out, z_in):
+    """z where the skin before the features (``_face_base``) is first met going along z from ``z_out``
+    (outside) toward ``z_in`` (inside), at each (x, y) of ``xy``: a list of floats."""
+    q = torch.tensor(xy, dtype=torch.float32)
+    zs = torch.linspace(z_out, z_in, 101)
+    pts = torch.cat([q[:, None, :].expand(-1, 101, 2), zs[None, :, None].expand(len(xy), -1, 1)], -1)
+    d = _face_base(pts.reshape(-1, 3), P).reshape(len(xy), 101)
+    first_in = torch.argmax((d < 0).to(torch.int8), dim=1).clamp(min=1)
+    out = zs[first_in - 1].clone()
+    inn = zs[first_in].clone()
+    for _ in range(18):
+        mid = 0.5 * (out + inn)
+        inside = _face_base(torch.cat([q, mid[:, None]], -1), P) < 0
+        inn, out = torch.where(inside, mid, inn), torch.where(inside, out, mid)
+    return (0.5 * (out + inn)).tolist()
+
+
+PONYTAIL_KNOTS = 12  # points down the back of the head and neck that a ponytail follows
+
+
 def _anchors(P):
-    """Where the features sit: z of the skin surface (before features) at their (x, y)."""
+    """Where the features sit: z of the skin surface (before features) at their (x, y); for a ponytail,
+    also the back's profile it lies on: [(y, z)] down the midline from its tie to its end."""
     E, ex = P["eye_height"], P["eye_spacing"]
     tip_y = E - P["nose_length"]
     xy = [(0.0, E + 0.005), (ex, E), (0.0, tip_y), (0.0, P["mouth_y"]), (0.0, P["chin_y"] + 0.04),
           (P["nose_width"], tip_y)]
-    q = torch.tensor(xy, dtype=torch.float32)
-    zs = torch.linspace(0.5, 0.0, 101)
-    pts = torch.cat([q[:, None, :].expand(-1, 101, 2), zs[None, :, None].expand(len(xy), -1, 1)], -1)
-    d = _face_base(pts.reshape(-1, 3), P).reshape(len(xy), 101)
-    first_in = torch.argmax((d < 0).to(torch.int8), dim=1).clamp(min=1)
-    hi = zs[first_in - 1].clone()  # outside
-    lo = zs[first_in].clone()      # inside
-    for _ in range(18):
-        mid = 0.5 * (lo + hi)
-        inside = _face_base(torch.cat([q, mid[:, None]], -1), P) < 0
-        lo, hi = torch.where(inside, mid, lo), torch.where(inside, hi, mid)
-    z = (0.5 * (lo + hi)).tolist()
-    return {"nasion": z[0], "eye": z[1], "nose": z[2], "mouth": z[3], "chin": z[4], "ala": z[5]}
+    z = _surface_z(P, xy, 0.5, 0.0)
+    A = {"nasion": z[0], "eye": z[1], "nose": z[2], "mouth": z[3], "chin": z[4], "ala": z[5]}
+    if P["hair_style"] == "ponytail":
+        ys = np.linspace(_cranium(P)[0][1] + 0.06, P["hair_length"], PONYTAIL_KNOTS).tolist()
+        A["ponytail"] = list(zip(ys, _surface_z(P, [(0.0, y) for y in ys], -0.5, 0.0)))
+    return A
 
 
 _ANCHORS: dict = {}
@@ -98,6 +112,8 @@ def _anchors_of(P):
 
 
 EYE_RADIUS = 0.029
+NOSE_FLARE = 0.5    # how fast the nose widens below its bridge line (half-width per unit of depth)
+NOSE_ROUND = 0.006  # rounding of the nose body's edges (head units)
 
 
 def _eye_centre(P, A, sx):
@@ -144,24 +160,35 @@ def _eyes(p, P, A):
 
 
 def _nose(p, P, A):
-    """Bridge, tip (and a hump), wings and columella."""
+    """Bridge, tip (and a hump), the body under the bridge closed by the columella, and the wings."""
     E, L = P["eye_height"], P["nose_length"]
     tip_y = E - L + P["nose_tilt"]
+    r_tip = P["nose_tip"]
     tip_z = A["nose"] + P["nose_projection"]
     top = (0.0, E + 0.005, A["nasion"] - 0.012)
-    tip = (0.0, tip_y + 0.006, tip_z - P["nose_tip"])
-    d = sd_capsule(p, top, tip, P["nose_bridge"], P["nose_tip"] * 0.8)
-    d = smin(d, sd_sphere(p, (0.0, tip_y, tip_z - P["nose_tip"]), P["nose_tip"]), 0.012)
+    tip = (0.0, tip_y + 0.006, tip_z - r_tip)
+    d = sd_capsule(p, top, tip, P["nose_bridge"], r_tip * 0.8)
+    d = smin(d, sd_sphere(p, (0.0, tip_y, tip_z - r_tip), r_tip), 0.012)
     hump = P["nose_hump"]
     if hump > 0.2:
         mid = (0.0, E - 0.4 * L, 0.6 * top[2] + 0.4 * tip[2] + 0.004 * hump)
         d = smin(d, sd_sphere(p, mid, P["nose_bridge"] * (0.9 + 0.5 * hump)), 0.01)
+    # Closed underneath: in the midplane the triangle nasion - tip - subnasale (its back edge set into the
+    # face), widening away from the bridge line; its lower edge is the columella, which joins the tip to
+    # the face between the nostrils however far the nose projects.
+    nasion, centre, sub = (top[1], top[2]), (tip_y, tip_z - r_tip), (E - L - 0.008, A["nose"] - 0.012)
+    profile = sd_triangle_2d(p[:, 1], p[:, 2], nasion, centre, sub)
+    below_bridge = _segment_2d(p[:, 1], p[:, 2], nasion, centre)
     w = P["nose_width"]
+    half = (0.7 * P["nose_bridge"] + NOSE_FLARE * below_bridge).clamp_max(max(0.8 * w, 0.7 * P["nose_bridge"]))
+    across = (p[:, 0].abs() - half + NOSE_ROUND) / math.sqrt(1.0 + NOSE_FLARE ** 2)
+    d = smin(d, _extrude(profile + NOSE_ROUND, across) - NOSE_ROUND, 0.008)
     for sx in (-1.0, 1.0):
         ala = sd_ellipsoid(p, (sx * (w - 0.012), tip_y - 0.004, A["ala"] + 0.006), (0.014, 0.012, 0.016))
         d = smin(d, ala, 0.012)
-    d = smin(d, sd_capsule(p, (-w * 0.5, tip_y - 0.008, tip_z - 0.03), (w * 0.5, tip_y - 0.008, tip_z - 0.03),
-                           0.011, 0.011), 0.01)
+        # The lobule's side, from under the tip to the wing.
+        d = smin(d, sd_capsule(p, (0.0, tip_y - 0.006, tip_z - 1.3 * r_tip), (sx * (w - 0.012), tip_y - 0.006,
+                                                                               A["ala"] + 0.006), 0.011, 0.011), 0.01)
     return d
 
 

@@ -8,6 +8,8 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from datagen.device import one_cpu_thread
+
 from .defects import smear_back
 from .field import head_field
 from .shapes import BOX, _t
@@ -46,7 +48,13 @@ def sample_grid(grid: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
 
 def bake_head(params: dict, defects: list[dict], res: int) -> HeadGrid:
     """Evaluate the head on a res^3 grid: the distance exactly in a band around the surface (found
-    coarse to fine: res/4, res/2, res), interpolated elsewhere; the colour only next to the surface."""
+    coarse to fine: res/4, res/2, res), interpolated elsewhere; the colour only next to the surface.
+    On one CPU thread (``one_cpu_thread``), so the same subject bakes to the same bits on any machine."""
+    with one_cpu_thread():
+        return _bake(params, defects, res)
+
+
+def _bake(params: dict, defects: list[dict], res: int) -> HeadGrid:
     coarse_res, mid_res = max(8, res // 4), max(8, res // 2)
     coarse = head_field(_grid_points(coarse_res), params, defects, colour=False)[0]
     coarse = coarse.reshape(1, 1, coarse_res, coarse_res, coarse_res)

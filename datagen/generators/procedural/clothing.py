@@ -9,12 +9,20 @@ from .anatomy import _cranium
 from .shapes import _extrude, _smoothstep, sd_capsule, sd_ellipsoid, smax, smin
 
 
+ARM_DEPTH = 1.3  # upper arms: depth (front to back) over width
+
+
 def _torso(p, P):
     """Shoulders and chest (skin) and the garment over them below the neckline: (skin sdf, cloth sdf)."""
     sw = P["shoulder_width"]
-    d = sd_ellipsoid(p, (0.0, -0.78, -0.03), (sw * 0.82, 0.32, 0.165))
+    d = sd_ellipsoid(p, (0.0, -0.74, -0.045), (sw * 0.85, 0.33, 0.21))
+    # The upper arms hang straight down from the shoulders, out of the box, and are deeper (front to back)
+    # than wide: round capsules made ARM_DEPTH times deeper (a lower bound of the distance). Seen from
+    # below, the body runs out of the picture instead of ending in a ball under the chin.
+    q = torch.stack([p[:, 0], p[:, 1], (p[:, 2] + 0.05) / ARM_DEPTH - 0.05], dim=-1)
     for sx in (-1.0, 1.0):
         d = smin(d, sd_capsule(p, (sx * 0.06, -0.40, -0.055), (sx * sw, -0.515, -0.05), 0.1, 0.115), 0.05)
+        d = torch.minimum(d, sd_capsule(q, (sx * sw, -0.515, -0.05), (sx * sw, -1.2, -0.05), 0.115, 0.105))
     d = smin(d, sd_capsule(p, (0.0, -0.25, -0.055), (0.0, -0.5, -0.05), P["neck_radius"] * 1.05, P["neck_radius"] * 1.2), 0.05)
     x, y, z = p[:, 0], p[:, 1], p[:, 2]
     # The neck opening: a cylinder round the neck, deeper at the front (and a V for v-necks).

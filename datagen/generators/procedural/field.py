@@ -55,7 +55,7 @@ def _head_field_local(p: torch.Tensor, P: dict, defects: list[dict], colour=True
         beard = _local(p, (-0.2, P["chin_y"] - 0.08, -0.1), (0.2, P["mouth_y"] + 0.08, 0.3),
                        lambda q: [(_facial_hair(q, P, A), None)])[0][0]
         extra.append((beard, lambda q, sel: _t(P["brow_rgb"]) * 1.1 * _strands(q * 1.6, P)[:, None]))
-    hair = _hair(p, P)
+    hair = _hair(p, P, A)
     if hair is not None:
         for e in injected:
             if e.hair_window is not None:

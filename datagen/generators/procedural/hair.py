@@ -7,7 +7,10 @@ import numpy as np
 import torch
 
 from .anatomy import _cranium
-from .shapes import _gauss, _interp, _smoothstep, _t, sd_capsule, sd_ellipsoid, sd_sphere, smax, smin
+from .shapes import _gauss, _interp, _local, _smoothstep, _t, sd_capsule, sd_ellipsoid, sd_sphere, smax, smin
+
+
+PONYTAIL_RADII = (0.034, 0.022)  # at the tie and at the end (head units; the end at least 2 grid voxels thick)
 
 
 def _strands(p, P, flow_y=True):
@@ -39,8 +42,28 @@ def _hairline(p, P, nape, front=None, ear_gap=True):
     return 0.7 * (_interp(az, xs, ys) - y)
 
 
-def _hair(p, P):
-    """The signed distance of the subject's hair, or None when bald (its colour: ``_hair_rgb``)."""
+def _ponytail(p, P, A):
+    """A ponytail tied at the back of the crown and lying along the back of the head and the neck down to
+    ``hair_length``: tapering capsules through the skin's profile there (``A["ponytail"]``), each centre
+    0.4 of its radius out from the skin, so that the tail is sunk into the head along its whole length."""
+    knots = A["ponytail"]
+    radii = np.linspace(PONYTAIL_RADII[0], PONYTAIL_RADII[1], len(knots))
+    centres = [(0.0, y, z - 0.4 * r) for (y, z), r in zip(knots, radii)]
+
+    def tube(q):
+        d = sd_capsule(q, centres[0], centres[1], radii[0], radii[1])
+        for k in range(1, len(centres) - 1):
+            d = torch.minimum(d, sd_capsule(q, centres[k], centres[k + 1], radii[k], radii[k + 1]))
+        return [(d, None)]
+    r = float(radii[0])
+    lo = (-r, knots[-1][0] - r, min(z for _, z in knots) - 1.4 * r)
+    hi = (r, knots[0][0] + r, max(z for _, z in knots) + r)
+    return _local(p, lo, hi, tube)[0][0]
+
+
+def _hair(p, P, A):
+    """The signed distance of the subject's hair, or None when bald (its colour: ``_hair_rgb``); ``A``: the
+    anchors (``anatomy._anchors_of``)."""
     style = P["hair_style"]
     cc, (rx, ry, rz) = _cranium(P)
     cy = cc[1]
@@ -85,11 +108,7 @@ def _hair(p, P):
             fall = smax(fall, face_cut, 0.02)
             hair = smin(hair, fall, 0.02)
         if style == "ponytail":
-            a = (0.0, cy + 0.06, cc[2] - rz - 0.005)
-            b = (0.0, cy - 0.07, cc[2] - rz - 0.06)
-            c = (0.0, P["hair_length"], cc[2] - rz - 0.03)
-            tail = smin(sd_capsule(p, a, b, 0.038, 0.036), sd_capsule(p, b, c, 0.036, 0.016), 0.02)
-            hair = smin(hair, tail, 0.015)
+            hair = smin(hair, _ponytail(p, P, A), 0.015)
         if style == "bun":
             if P["hair_volume"] > 0.5:
                 centre, r = (0.0, cy + ry * 0.78, cc[2] - rz * 0.45), 0.07

@@ -223,7 +223,7 @@ def _ears_and_build(u, P) -> dict:
         "ear_protrusion": u(0.0, 1.0),
         "ear_y": P["eye_height"] - u(0.025, 0.04),
         "neck_radius": u(0.08, 0.092) + 0.02 * masc + 0.015 * P["weight"],
-        "shoulder_width": u(0.38, 0.41) + 0.03 * masc,  # the shoulders end, rounded, inside the box
+        "shoulder_width": u(0.38, 0.41) + 0.03 * masc,  # the arms hang from here; their outer side stays inside the box
     }
 
 

@@ -52,6 +52,25 @@ def sd_ellipse_2d(x, y, ax, ay):
     return k0 * (k0 - 1.0) / k1
 
 
+def _segment_2d(x, y, a, b):
+    """Distance in a plane from points (x, y) to the segment from a to b ((x, y) pairs)."""
+    ex, ey = b[0] - a[0], b[1] - a[1]
+    vx, vy = x - a[0], y - a[1]
+    h = ((vx * ex + vy * ey) / (ex * ex + ey * ey)).clamp(0.0, 1.0)
+    return torch.sqrt((vx - h * ex) ** 2 + (vy - h * ey) ** 2)
+
+
+def sd_triangle_2d(x, y, a, b, c):
+    """Exact signed distance in a plane from points (x, y) to the triangle a, b, c ((x, y) pairs, either
+    winding); negative inside."""
+    edges = ((a, b), (b, c), (c, a))
+    d = torch.minimum(torch.minimum(_segment_2d(x, y, a, b), _segment_2d(x, y, b, c)), _segment_2d(x, y, c, a))
+    # Inside when the point lies on the same side of all three edges (cross products of one sign).
+    side = [(v[0] - u[0]) * (y - u[1]) - (v[1] - u[1]) * (x - u[0]) for u, v in edges]
+    inside = ((side[0] >= 0) & (side[1] >= 0) & (side[2] >= 0)) | ((side[0] <= 0) & (side[1] <= 0) & (side[2] <= 0))
+    return torch.where(inside, -d, d)
+
+
 def _extrude(d2, h):
     """Exact distance of a 2D region (signed distance d2) extruded to a slab of half-thickness h (h signed
     distance to the slab's mid-plane given as ``h`` = |offset| - half)."""
