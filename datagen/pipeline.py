@@ -11,6 +11,7 @@ import os
 import platform
 import subprocess
 import time
+from contextlib import closing
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -25,7 +26,7 @@ from .files import LockBusy, atomic_write, byte_lock
 from .generators import GANS, make_generator
 from .generators.base import STREAM_CAMERAS, subject_rng
 from .generators.gan import NOT_RECORDED
-from .raycluster import ray_connection
+from .raycluster import ray_connection, ray_results
 from .shapes import check_resolution, encode_mesh, extract_shape
 from .shards import (FORMAT, INDEX_NAME, ShardWriter, dumps, encode_subject, is_complete, job_shards,
                      read_index, remove_partial, shard_name, subject_id, tar_path, view_name)
@@ -325,33 +326,14 @@ def _run_ray(spec: JobSpec, shards: list[int], address: str | None, threads: int
 
 
 def _run_ray_tasks(ray, spec: JobSpec, shards: list[int], threads: int, gpus: float | None, bar) -> None:
-    """Submit one task per shard and wait for them; after an error or an interrupt the rest are cancelled."""
-    pending: dict = {}
-    try:
-        options = ray_task_options(ray.nodes(), threads, gpus)
-        task = ray.remote(**options)(_ray_task)
-        pending = {task.remote(spec, s, options["num_cpus"], bool(gpus)): s for s in shards}
-        while pending:
-            done, _ = ray.wait(list(pending), num_returns=1)
-            shard = pending.pop(done[0])
-            try:
-                sidecar = ray.get(done[0])
-            except ray.exceptions.RayTaskError as e:
-                cause = getattr(e, "cause", None)
-                if isinstance(cause, Exception):
-                    # The task's own error, as the local backend raises it; the chained error
-                    # carries the remote traceback.
-                    raise cause from e
-                raise RuntimeError(f"shard {shard} failed on Ray: {e}") from e
-            except ray.exceptions.RayError as e:
-                raise RuntimeError(f"shard {shard} failed on Ray ({type(e).__name__}): {e}") from e
+    """Submit one task per shard and wait for them; after an error or an interrupt the rest are
+    cancelled (each removes its partial shard)."""
+    options = ray_task_options(ray.nodes(), threads, gpus)
+    task = ray.remote(**options)(_ray_task)
+    pending = {task.remote(spec, s, options["num_cpus"], bool(gpus)): s for s in shards}
+    with closing(ray_results(ray, pending, "shard {}")) as finished:
+        for _, sidecar in finished:
             bar.update(len(sidecar["subjects"]) * spec.views)
-    finally:
-        for ref in pending:  # after an error or an interrupt: stop the rest (each removes its partial shard)
-            try:
-                ray.cancel(ref)
-            except Exception:
-                pass
 
 
 class _NullBar:

@@ -5,6 +5,7 @@ import logging
 import os
 import socket
 from contextlib import contextmanager
+from typing import Iterator
 
 from .errors import UserError
 
@@ -50,3 +51,31 @@ def ray_connection(address: str | None):
         if started:
             ray.shutdown()
             ray_logger.setLevel(level)
+
+
+def ray_results(ray, pending: dict, what: str) -> Iterator[tuple]:
+    """(name, result) of each Ray task in ``pending`` ({object ref: name}) as it finishes. A task's own
+    error is raised as the task raised it (chained to Ray's, which carries the remote traceback); any
+    other Ray error is a RuntimeError naming ``what.format(name)``. After an error, an interrupt or
+    the caller's early exit (close the iterator), the tasks still pending are cancelled."""
+    pending = dict(pending)
+    try:
+        while pending:
+            done, _ = ray.wait(list(pending), num_returns=1)
+            name = pending.pop(done[0])
+            try:
+                result = ray.get(done[0])
+            except ray.exceptions.RayTaskError as e:
+                cause = getattr(e, "cause", None)
+                if isinstance(cause, Exception):
+                    raise cause from e
+                raise RuntimeError(f"{what.format(name)} failed on Ray: {e}") from e
+            except ray.exceptions.RayError as e:
+                raise RuntimeError(f"{what.format(name)} failed on Ray ({type(e).__name__}): {e}") from e
+            yield name, result
+    finally:
+        for ref in pending:
+            try:
+                ray.cancel(ref)
+            except Exception:
+                pass  # a task that ended meanwhile

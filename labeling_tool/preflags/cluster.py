@@ -8,8 +8,9 @@ from its ``timing``.
 from __future__ import annotations
 
 import time
+from contextlib import closing
 
-from datagen.raycluster import ray_connection
+from datagen.raycluster import ray_connection, ray_results
 from datagen.shards import index_sha256
 
 from .pipeline import _bar, _measure, finish, plan
@@ -37,21 +38,12 @@ def score_on_ray(root, address: str | None = None, progress: bool = False, skip_
         remote = ray.remote(num_cpus=1)(_measure_shard)
         pending = {remote.remote(group): shard for shard, group in by_shard.items()}
         try:
-            while pending:
-                done, _ = ray.wait(list(pending), num_returns=1)
-                shard = pending.pop(done[0])
-                try:
-                    results[shard] = ray.get(done[0])
-                except ray.exceptions.RayTaskError as e:
-                    cause = getattr(e, "cause", None)
-                    if isinstance(cause, Exception):
-                        raise cause from e  # the task's own error, as one process raises it
-                    raise RuntimeError(f"measuring {shard} failed on Ray: {e}") from e
-                if bar is not None:
-                    bar.update(len(results[shard]))
+            with closing(ray_results(ray, pending, "measuring {}")) as finished:
+                for shard, records in finished:
+                    results[shard] = records
+                    if bar is not None:
+                        bar.update(len(records))
         finally:
-            for ref in pending:  # after an error or an interrupt: stop the rest
-                ray.cancel(ref)
             if bar is not None:
                 bar.close()
     extracted = {"index_sha256": index_sha256(root), "records": [p for s in by_shard for p in results[s]],

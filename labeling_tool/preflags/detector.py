@@ -105,7 +105,12 @@ def calibrated_cut(levels, tail: float) -> float:
     """The evidence (units of the detector's threshold, at least 1) above which a subject of the
     null ``levels`` (every measured subject's evidence) has probability ``tail`` (``null_tail``).
     1 with fewer than MIN_SUBJECTS levels or a point mass."""
-    fit = null_tail(levels)
+    return cut_of(null_tail(levels), tail)
+
+
+def cut_of(fit: tuple[float, float, float] | None, tail: float) -> float:
+    """The evidence (at least 1) where the fitted tail ``fit`` (``null_tail``) reaches ``tail``; 1 for
+    no fit or a point mass."""
     if fit is None or fit[1] == 0.0:
         return 1.0
     u, decay, share = fit
@@ -129,11 +134,10 @@ def calibrated_cuts(levels, own, rate: float, calibrated=None, caps=None) -> tup
     for _ in range(NULL_ROUNDS):
         flagged = own & ((cuts <= 1.0) | (np.where(measured, x, -np.inf) >= np.minimum(cuts, cap)))
         others = flagged.sum(axis=1, keepdims=True) - flagged
-        nulls, fits = {}, [None] * n_det
+        fits = [None] * n_det
         for k in np.flatnonzero(cal):
             null = measured[:, k] & (others[:, k] == 0)
-            nulls[k] = x[null if null.sum() >= MIN_SUBJECTS else measured[:, k], k]
-            fits[k] = null_tail(nulls[k])
+            fits[k] = null_tail(x[null if null.sum() >= MIN_SUBJECTS else measured[:, k], k])
         need = [tail_beyond(f, 1.0) if f is not None else rate / n_det for f in fits]
         budget, left = rate, sorted(range(n_det), key=lambda k: need[k])
         while left and need[left[0]] < budget / len(left):
@@ -142,7 +146,7 @@ def calibrated_cuts(levels, own, rate: float, calibrated=None, caps=None) -> tup
             budget -= need[k]
         for k in left:
             shares[k] = budget / len(left)
-            cuts[k] = calibrated_cut(nulls[k], shares[k]) if k in nulls else 1.0
+            cuts[k] = cut_of(fits[k], shares[k])
     return cuts, shares
 
 
