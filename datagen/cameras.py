@@ -85,6 +85,11 @@ def depth_points(cam2world: np.ndarray, K_norm: np.ndarray, resolution: int, row
     return cam2world[:3, 3] + np.asarray(depth)[..., None] * d
 
 
+def angle_between(a_deg, b_deg=0.0):
+    """The smaller angle between directions ``a_deg`` and ``b_deg`` (degrees, any turns), in [0, 180]."""
+    return np.abs((np.asarray(a_deg, dtype=np.float64) - b_deg + 180.0) % 360.0 - 180.0)
+
+
 def camera_position(yaw_deg, pitch_deg, radius) -> np.ndarray:
     """Camera centres (..., 3) on a sphere around the origin, from yaw/pitch in degrees."""
     yaw = np.radians(np.asarray(yaw_deg, dtype=np.float64))

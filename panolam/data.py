@@ -23,7 +23,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from datagen.cameras import FRONTAL_YAW_DEG
+from datagen.cameras import FRONTAL_YAW_DEG, angle_between
 from datagen.errors import DatasetError, UserError
 from datagen.manifests import check_dataset, read_manifest
 from datagen.shards import check_shards, decode_sample, read_fields, shard_index, tar_path
@@ -172,7 +172,7 @@ class TrainingSamples(torch.utils.data.Dataset):
         rng = _rng(self.seed, 1, g)
         if self.input_views == "any":
             return [int(v) for v in rng.choice(n_views, self.views_per_sample, replace=False)]
-        off = np.abs((np.asarray(yaw_deg, dtype=float) + 180.0) % 360.0 - 180.0)
+        off = angle_between(yaw_deg)
         frontal = np.flatnonzero(off <= FRONTAL_YAW_DEG)
         first = int(rng.choice(frontal)) if len(frontal) else int(off.argmin())
         rest = np.delete(np.arange(n_views), first)

@@ -34,6 +34,7 @@ import numpy as np
 import torch
 from PIL import Image, ImageDraw
 
+from datagen.cameras import angle_between
 from datagen.device import constant
 from datagen.files import atomic_write
 from datagen.preview import font
@@ -61,7 +62,7 @@ def nearest_views(yaw_deg: np.ndarray) -> dict | None:
     """{name: view index} of the views nearest each evaluation yaw, or None if one is missing."""
     picked = {}
     for name, target in EVAL_VIEWS.items():
-        diff = np.abs((np.asarray(yaw_deg) - target + 180.0) % 360.0 - 180.0)
+        diff = angle_between(yaw_deg, target)
         i = int(diff.argmin())
         if diff[i] > YAW_TOLERANCE:
             return None

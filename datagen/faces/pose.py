@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from datagen.cameras import FOV_MEAN, fov_to_focal, intrinsics, pixel_intrinsics
+from datagen.cameras import FOV_MEAN, angle_between, fov_to_focal, intrinsics, pixel_intrinsics
 
 from .detect import detect_faces, landmarks
 from .images import FaceError, rgb_u8
@@ -89,4 +89,4 @@ def apd(img_a, img_b, focal: float = DEFAULT_FOCAL) -> float:
         a, b = head_pose(img_a, focal).angles, head_pose(img_b, focal).angles
     except FaceError:
         return math.nan
-    return float(np.mean([abs((x - y + 180) % 360 - 180) for x, y in zip(a, b)]))
+    return float(np.mean(angle_between(a, b)))

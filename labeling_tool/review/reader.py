@@ -13,6 +13,7 @@ from collections import OrderedDict
 
 import numpy as np
 
+from datagen.cameras import angle_between
 from datagen.errors import DatasetError
 from datagen.shards import decode_png, read_sidecar, shard_index, tar_path
 
@@ -97,7 +98,7 @@ class SubjectReader:
 
 def nearest_view(views: list[dict], yaw: float) -> int:
     """Index of the view closest to ``yaw`` (degrees) on the equator."""
-    d = [abs((v["yaw_deg"] - yaw + 180) % 360 - 180) + abs(v["pitch_deg"]) for v in views]
+    d = [angle_between(v["yaw_deg"], yaw) + abs(v["pitch_deg"]) for v in views]
     return int(np.argmin(d))
 
 
