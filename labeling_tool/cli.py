@@ -36,6 +36,10 @@ def build_parser() -> OneLineParser:
     a.add_argument("--skip-incomplete", action="store_true",
                    help="score the complete shards and list the others (default: a missing, incomplete or "
                         "damaged shard is an error)")
+    a.add_argument("--false-alarm-rate", type=float, metavar="R",
+                   help="share of clean subjects the detectors together may flag, 0 <= R < 1 (default 0.03); the "
+                        "union is calibrated to it on this dataset. 0: every detector at its own threshold, "
+                        "uncalibrated")
     a.add_argument("--top", type=int, default=10, metavar="N", help="print the N worst subjects")
     a.add_argument("--quiet", action="store_true", help="no progress bar")
     a.add_argument("--shard-index", type=int, metavar="K",
@@ -124,8 +128,11 @@ def build_queue(target: str, queue: str):
 def _auto(args) -> int:
     from datagen.preflags import write_preflags
 
-    from .preflags import FLAG_AT, score_dataset
+    from .preflags import FALSE_ALARM_RATE, FLAG_AT, score_dataset
 
+    rate = FALSE_ALARM_RATE if args.false_alarm_rate is None else args.false_alarm_rate
+    if not 0 <= rate < 1:
+        raise UserError(f"--false-alarm-rate must be at least 0 and below 1, not {args.false_alarm_rate:g}")
     if args.workers < 1:
         raise UserError("--workers must be at least 1")
     if args.top < 0:
@@ -135,9 +142,9 @@ def _auto(args) -> int:
         raise UserError("--shard-index and --num-shards go together")
     if (sliced or args.merge) and args.backend == "ray":
         raise UserError("--backend ray measures and scores in one run; --shard-index and --merge are for array jobs")
-    if sliced and (args.merge or args.learn):
-        raise UserError(f"--shard-index measures one slice; {'--merge' if args.merge else '--learn'} goes with the "
-                        "--merge run after every slice")
+    if sliced and (args.merge or args.learn or args.false_alarm_rate is not None):
+        given = "--merge" if args.merge else "--learn" if args.learn else "--false-alarm-rate"
+        raise UserError(f"--shard-index measures one slice; {given} goes with the --merge run after every slice")
     if args.out is not None and not (sliced or args.merge):
         raise UserError("--out is the folder of slice files: only with --shard-index or --merge")
     if args.ray_address is not None and args.backend != "ray":
@@ -157,15 +164,15 @@ def _auto(args) -> int:
     if args.merge:
         from .preflags.slices import merge_slices
 
-        report = merge_slices(args.dataset, args.out, labels=args.learn)
+        report = merge_slices(args.dataset, args.out, labels=args.learn, false_alarm_rate=rate)
     elif args.backend == "ray":
         from .preflags.cluster import score_on_ray
 
         report = score_on_ray(args.dataset, args.ray_address, progress=not args.quiet,
-                              skip_incomplete=args.skip_incomplete, labels=args.learn)
+                              skip_incomplete=args.skip_incomplete, labels=args.learn, false_alarm_rate=rate)
     else:
         report = score_dataset(args.dataset, progress=not args.quiet, workers=args.workers,
-                               skip_incomplete=args.skip_incomplete, labels=args.learn)
+                               skip_incomplete=args.skip_incomplete, labels=args.learn, false_alarm_rate=rate)
     path = write_preflags(args.dataset, report)
     flagged = [r for r in report["subjects"] if r["flags"]]
     skipped = report["summary"]["skipped_shards"]
@@ -175,7 +182,9 @@ def _auto(args) -> int:
         print(f"learned from {learned['verdicts']} verdicts ({learned['bad']} bad): " +
               (f"unreviewed subjects re-ranked (cross-validated AUC {cv:.2f})" if learned["used"] and cv is not None
                else "unreviewed subjects re-ranked" if learned["used"] else learned["why"]))
-    print(f"scored {len(report['subjects'])} subjects, {len(flagged)} flagged -> {path}"
+    calibrated = (f"calibrated to flag at most {rate:.1%} of clean subjects" if rate
+                  else "each detector at its own threshold, uncalibrated")
+    print(f"scored {len(report['subjects'])} subjects, {len(flagged)} flagged ({calibrated}) -> {path}"
           + (f"; SKIPPED {len(skipped)} incomplete shard(s): {', '.join(skipped[:5])}" if skipped else ""))
     shown = report["subjects"][: args.top]
     if shown:

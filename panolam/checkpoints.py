@@ -1,7 +1,7 @@
 """Run checkpoints: writing them atomically, reading them back, the trained model they hold.
 
 A checkpoint (``<run>/checkpoint.pt``, format ``panolam-checkpoint/1``) holds the model, optimizer
-and scheduler states, the CPU RNG state, the step, both configs, the recent per-step log and what
+and scheduler states, the decay's progress, the CPU RNG state, the step, both configs, the recent per-step log and what
 the run trains on (:func:`panolam.train.training_data`). Its tensors are written from the CPU and
 read onto the CPU whatever device trained or resumes the run, so a run moves between CPU and GPU
 machines; loading the states into a model and optimizer on a device moves them there. It is read
@@ -73,17 +73,18 @@ def _on_host(value):
 
 
 def save_checkpoint(out: Path, model, optimizer, scheduler, step: int, model_cfg: ModelConfig, cfg: TrainConfig,
-                    history: list, data: Optional[dict] = None) -> Path:
+                    history: list, data: Optional[dict] = None, schedule_progress: float = 0.0) -> Path:
     """Write ``out/checkpoint.pt`` atomically (temporary name, then rename; the temporary is removed
     and an OSError names the file when writing fails, e.g. on a full disk).
 
-    ``data``: what the run trains on, checked on resume and by evaluation.
+    ``data``: what the run trains on, checked on resume and by evaluation; ``schedule_progress``:
+    how far the learning-rate decay has come (:class:`panolam.train.Schedule`).
     """
     core = model.module if hasattr(model, "module") else model
     state = {"format": FORMAT, "step": step, "model": _on_host(core.state_dict()),
              "optimizer": _on_host(optimizer.state_dict()), "scheduler": scheduler.state_dict(),
              "rng": torch.get_rng_state(), "model_config": model_cfg.to_dict(), "train_config": cfg.to_dict(),
-             "history": history[-HISTORY_KEPT:], "data": data or {}}
+             "history": history[-HISTORY_KEPT:], "data": data or {}, "schedule_progress": float(schedule_progress)}
     return atomic_write(Path(out) / CHECKPOINT, lambda f: _torch_save(state, f))
 
 

@@ -12,7 +12,8 @@ predicted planes and the GAN's planes when the dataset stores them (``--save-pla
 perceptual term is LPIPS when its weights are given, otherwise D-SSIM ``(1 - SSIM) / 2`` (the log
 says which).
 
-Optimizer: Adam, linear warm-up then cosine decay to ``lr_floor`` of the peak, gradient-norm clipping; bf16 autocast of the
+Optimizer: Adam, linear warm-up then cosine decay to ``lr_floor`` of the peak (over the steps, or
+fitted to ``--time-limit``: :class:`Schedule`), gradient-norm clipping; bf16 autocast of the
 network on CUDA (:func:`bf16_autocast`; renders and losses stay float32). A step reads from the
 device once, after the update: the loss, its parts, the gradient norm and the largest parameter (a
 non-finite loss, gradient or parameter stops the run before anything is saved); several processes
@@ -143,12 +144,51 @@ def first_target(cfg: TrainConfig) -> int:
     return 0 if cfg.targets == "all" else 1
 
 
-def lr_factor(step: int, cfg: TrainConfig) -> float:
-    """Linear warm-up to 1, then cosine decay to ``cfg.lr_floor`` at ``cfg.steps``."""
+def lr_factor(step: int, cfg: TrainConfig, progress: Optional[float] = None) -> float:
+    """Linear warm-up to 1 over ``cfg.warmup_steps``, then cosine decay to ``cfg.lr_floor`` as
+    ``progress`` goes from 0 to 1 (default: the share of the steps after warm-up done)."""
     if step < cfg.warmup_steps:
         return (step + 1) / cfg.warmup_steps
-    progress = (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps)
+    if progress is None:
+        progress = (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps)
     return cfg.lr_floor + (1 - cfg.lr_floor) * 0.5 * (1 + math.cos(math.pi * min(1.0, progress)))
+
+
+class Schedule:
+    """The learning-rate factor of a run, fitted to its time limit.
+
+    The decay's progress is the larger of the steps' share and, with a time limit (``deadline``, a
+    ``time.monotonic()``), the time's: from where the decay stood when it started in this process
+    (after warm-up, or at the resumed step) to 1 at the deadline. So ``--time-limit`` alone, with
+    more ``--steps`` than fit, still ends at the floor; without a limit the schedule is the steps'
+    and a resumed run continues it exactly. ``progress`` never goes back (it is kept in the
+    checkpoint), so resuming a time-limited run, with or without a new limit, continues its decay.
+    Processes agree on the time's share (:meth:`time_progress`, then :meth:`advance`) before the
+    scheduler reads :meth:`factor`, so they all take the same learning rate.
+    """
+
+    def __init__(self, cfg: TrainConfig, deadline: Optional[float] = None, progress: float = 0.0, clock=time.monotonic):
+        self.cfg, self.deadline, self.progress, self.clock = cfg, deadline, progress, clock
+        self.decay_start: Optional[tuple[float, float]] = None  # (time, progress) the decay started at here
+
+    def time_progress(self, step: int) -> float:
+        """Where the time limit puts the decay for ``step`` (0 without a limit and during warm-up)."""
+        if self.deadline is None or step < self.cfg.warmup_steps:
+            return 0.0
+        now = self.clock()
+        if self.decay_start is None:
+            self.decay_start = (now, self.progress)
+        t0, p0 = self.decay_start
+        return 1.0 if self.deadline <= t0 else p0 + (1 - p0) * (now - t0) / (self.deadline - t0)
+
+    def advance(self, progress: float) -> None:
+        self.progress = min(1.0, max(self.progress, progress))
+
+    def factor(self, step: int) -> float:
+        """The factor of ``step`` (LambdaLR's function): warm-up, then the decay at the progress reached."""
+        if step >= self.cfg.warmup_steps:
+            self.advance((step - self.cfg.warmup_steps) / max(1, self.cfg.steps - self.cfg.warmup_steps))
+        return lr_factor(step, self.cfg, self.progress)
 
 
 def training_data(dataset: TrainingSamples, manifest) -> dict:
@@ -190,15 +230,16 @@ def check_start(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, r
     return state, dataset, data_info
 
 
-def _agreed(world: int, device: torch.device, *flags: bool) -> list[bool]:
-    """Each flag, true on any process (the flags themselves with a single process). With several, one
-    all-reduce on ``device`` (NCCL reduces CUDA tensors only) and its read, taken right after the
-    step's read, when the device has nothing else queued."""
+def _agreed(world: int, device: torch.device, *values: float) -> list[float]:
+    """Each value's maximum over the processes (the values themselves with a single process): flags
+    (true on any process) and the time limit's share of the schedule. With several, one all-reduce on
+    ``device`` (NCCL reduces CUDA tensors only) and its read, taken right after the step's read,
+    when the device has nothing else queued."""
     if world == 1:
-        return list(flags)
-    t = torch.tensor([float(f) for f in flags], device=device)
+        return [float(v) for v in values]
+    t = torch.tensor([float(v) for v in values], device=device, dtype=torch.float64)
     dist.all_reduce(t, op=dist.ReduceOp.MAX)
-    return [bool(v) for v in t.cpu().tolist()]
+    return t.cpu().tolist()
 
 
 def sample_indices(step: int, cfg: TrainConfig, rank: int, world: int) -> list[int]:
@@ -240,7 +281,9 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
     model = PanoLAM(model_cfg).to(device)
     params = [p for p in model.parameters() if p.requires_grad]
     optimizer = torch.optim.Adam(params, lr=cfg.lr, betas=cfg.betas)
-    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda s: lr_factor(s, cfg))
+    schedule = Schedule(cfg, None if cfg.time_limit_s is None else started + cfg.time_limit_s,
+                        state.get("schedule_progress", 0.0) if state is not None else 0.0)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, schedule.factor)
     step, history = 0, []
     if state is not None:
         model.load_state_dict(state["model"])
@@ -281,7 +324,8 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
         loss_v, norm_v, updated_v, *part_v = torch.stack([loss.detach().float(), grad_norm.float(), updated.float(),
                                                           *(v.detach().float() for v in parts.values())]).cpu().tolist()
         # Every process takes the same decisions: a bad loss anywhere or the time limit stops them all.
-        bad_loss, out_of_time = _agreed(world, device, not math.isfinite(loss_v), clock.next_step_overruns())
+        bad_loss, out_of_time, time_progress = _agreed(world, device, not math.isfinite(loss_v),
+                                                       clock.next_step_overruns(), schedule.time_progress(step + 1))
         if bad_loss:
             bad = ", ".join(f"{k}={v:.4g}" for k, v in zip(parts, part_v))
             raise TrainingError(f"non-finite loss at step {step} (subjects {batch.key} on process {rank}): {bad}")
@@ -291,6 +335,7 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
         if not math.isfinite(updated_v):
             raise TrainingError(f"{_update_failed(step, lr)}: parameters are no longer finite; the last checkpoint "
                                 f"is intact")
+        schedule.advance(time_progress)
         scheduler.step()
         step += 1
         entry = {"step": step, "loss": loss_v, "lr": lr, "grad_norm": norm_v,
@@ -312,7 +357,8 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
         stop = out_of_time or (until is not None and step >= until)
         if rank == 0 and (step % cfg.checkpoint_every == 0 or step == cfg.steps or stop):
             with clock.checkpoint():
-                save_checkpoint(out, model, optimizer, scheduler, step, model_cfg, cfg, history, data_info)
+                save_checkpoint(out, model, optimizer, scheduler, step, model_cfg, cfg, history, data_info,
+                                schedule_progress=schedule.progress)
         if stop:
             if out_of_time and rank == 0:
                 _log_text(out, f"stopped at step {step}: another step would end after the {cfg.time_limit_s:g} s "

@@ -201,9 +201,9 @@ def test_a_cpu_run_resumes_on_the_device_reading_it_once_per_step_and_comes_back
     saved, apart = [], {"syncs": 0, "transfers": 0}
     real_save = train_module.save_checkpoint
 
-    def save(out, model, optimizer, *args):
+    def save(out, model, optimizer, *args, **kwargs):
         saved.append(list(optimizer.state.values()))
-        return real_save(out, model, optimizer, *args)
+        return real_save(out, model, optimizer, *args, **kwargs)
     monkeypatch.setattr(train_module, "save_checkpoint", _counted(mode, save, apart))
     monkeypatch.setattr(train_module, "_grid", _counted(mode, train_module._grid, apart))
     mode.strict_syncs = True

@@ -19,12 +19,13 @@ def test_ray_backend_gives_the_one_process_report(tiny_dataset, tmp_path, capsys
     assert not ray.is_initialized()
     ds = tmp_path / "ds"
     shutil.copytree(tiny_dataset, ds, ignore=shutil.ignore_patterns("preflags*"))
-    one = preflags.score_dataset(ds)
+    one = preflags.score_dataset(ds, false_alarm_rate=0.05)
     assert all("does not decode" not in s["detectors"]["empty"]["why"] for s in one["subjects"])
-    assert label_main(["auto", str(ds), "--backend", "ray", "--quiet", "--top", "0"]) == 0
+    assert label_main(["auto", str(ds), "--backend", "ray", "--quiet", "--top", "0", "--false-alarm-rate", "0.05"]) == 0
     assert not ray.is_initialized(), "the Ray instance started for the run was not shut down"
     on_ray = json.loads((ds / "preflags.json").read_text())
     assert on_ray["timing"]["backend"] == "ray" and on_ray["timing"]["tasks"] == 2
+    assert on_ray["calibration"]["false_alarm_rate"] == 0.05
     strip = [{k: v for k, v in r.items() if k != "timing"} for r in (one, on_ray)]
     assert write_preflags(ds, strip[0], tmp_path / "a.json").read_bytes() == \
         write_preflags(ds, strip[1], tmp_path / "b.json").read_bytes()

@@ -101,6 +101,9 @@ def test_a_merge_refuses_missing_stale_and_foreign_slices(dataset, tmp_path):
     (["--merge", "--backend", "ray"], "--backend ray measures and scores in one run"),
     (["--out", "x"], "--out is the folder of slice files"),
     (["--merge"], "no slices to merge"),
+    (["--false-alarm-rate", "1"], "--false-alarm-rate must be at least 0 and below 1, not 1"),
+    (["--false-alarm-rate", "-0.01"], "--false-alarm-rate must be at least 0"),
+    (["--shard-index", "0", "--num-shards", "2", "--false-alarm-rate", "0.1"], "--false-alarm-rate goes with the --merge"),
 ])
 def test_auto_slice_options_are_checked_in_one_line(dataset, tmp_path, capsys, args, message):
     ds = tmp_path / "ds"
@@ -121,3 +124,20 @@ def test_auto_cli_slices_then_merge(dataset, one_process, tmp_path, capsys):
     assert label_main(["auto", str(ds), "--merge", "--out", str(out), "--top", "0"]) == 0
     merged = json.loads((ds / "preflags.json").read_text())
     assert report_bytes(tmp_path, merged) == report_bytes(tmp_path, one_process)
+
+
+def test_the_false_alarm_rate_reaches_every_way_of_scoring(dataset, tmp_path, capsys):
+    ds = tmp_path / "ds"
+    shutil.copytree(dataset, ds, ignore=shutil.ignore_patterns("preflags*"))
+    assert label_main(["auto", str(ds), "--quiet", "--top", "0", "--false-alarm-rate", "0.1"]) == 0
+    assert "calibrated to flag at most 10.0% of clean subjects" in capsys.readouterr().out
+    one = json.loads((ds / "preflags.json").read_text())
+    assert one["calibration"]["false_alarm_rate"] == 0.1
+    for k in range(2):
+        assert label_main(["auto", str(ds), "--quiet", "--shard-index", str(k), "--num-shards", "2"]) == 0
+    assert label_main(["auto", str(ds), "--merge", "--top", "0", "--false-alarm-rate", "0.1"]) == 0
+    merged = json.loads((ds / "preflags.json").read_text())
+    assert report_bytes(tmp_path, merged) == report_bytes(tmp_path, one)
+    assert label_main(["auto", str(ds), "--merge", "--top", "0", "--false-alarm-rate", "0"]) == 0
+    assert "each detector at its own threshold, uncalibrated" in capsys.readouterr().out
+    assert json.loads((ds / "preflags.json").read_text())["calibration"]["false_alarm_rate"] == 0

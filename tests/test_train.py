@@ -77,6 +77,40 @@ def test_the_learning_rate_decays_to_its_floor_and_old_runs_keep_their_recipe():
     assert TrainConfig.from_dict(cfg.to_dict()) == cfg
 
 
+def test_a_time_limit_fits_the_decay_to_the_time_and_resuming_never_raises_the_rate():
+    cfg = TrainConfig(steps=10_000, warmup_steps=10, lr_floor=0.1)
+    now = [0.0]
+    schedule = train_module.Schedule(cfg, deadline=100.0, clock=lambda: now[0])
+    factors = []
+    for step in range(60):  # one step a second, warm-up done after 10 s; 10,000 steps would never fit
+        now[0] = float(step)
+        schedule.advance(schedule.time_progress(step))
+        factors.append(schedule.factor(step))
+    assert factors[:10] == [train_module.lr_factor(s, cfg) for s in range(10)]
+    assert schedule.decay_start == (10.0, 0.0)
+    assert schedule.progress == pytest.approx(49 / 90)  # 49 of the 90 s between the decay's start and the deadline
+    assert factors[-1] == pytest.approx(train_module.lr_factor(10, cfg, 49 / 90))
+    assert all(a >= b for a, b in zip(factors[9:], factors[10:]))
+    now[0] = 100.0
+    schedule.advance(schedule.time_progress(60))
+    assert schedule.factor(60) == pytest.approx(0.1)  # the floor at the deadline
+    # resumed without a limit: the decay stays where it was until the steps' share passes it
+    resumed = train_module.Schedule(cfg, progress=0.5)
+    assert resumed.factor(20) == pytest.approx(train_module.lr_factor(20, cfg, 0.5))
+    assert resumed.factor(9000) == pytest.approx(train_module.lr_factor(9000, cfg))
+    # resumed with a new limit: the rest of the decay fits into it
+    again = train_module.Schedule(cfg, deadline=50.0, progress=0.5, clock=lambda: now[0])
+    now[0] = 0.0
+    again.advance(again.time_progress(60))
+    now[0] = 25.0
+    again.advance(again.time_progress(61))
+    assert again.progress == pytest.approx(0.75)
+    # no limit: exactly the steps' schedule
+    plain = train_module.Schedule(cfg)
+    assert [plain.factor(s) for s in range(0, 10_000, 500)] == [train_module.lr_factor(s, cfg)
+                                                               for s in range(0, 10_000, 500)]
+
+
 def test_the_input_view_is_among_the_targets_unless_asked_otherwise(curated):
     data, manifest = curated
     samples = TrainingSamples(data, manifest, "train", 3, 16, seed=0, input_resolution=MODEL.image_size)

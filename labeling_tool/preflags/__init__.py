@@ -11,7 +11,7 @@ it measured. Scores only order the review queue; nothing is deleted.
     floaters     silhouette parts detached from the head
     haze         semi-transparent material around the head
     holes        see-through holes in the silhouette and craters in the depth
-    washed_out   a faded texture: its most saturated and its darkest pixels
+    washed_out   a faded texture: its most saturated pixels
     blur         soft silhouette edges
     empty        (almost) empty views, subjects that do not decode
     implausible  mask area or depth far from the dataset

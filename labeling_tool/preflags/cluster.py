@@ -13,6 +13,7 @@ from contextlib import closing
 from datagen.raycluster import ray_connection, ray_results
 from datagen.shards import index_sha256
 
+from .detector import FALSE_ALARM_RATE
 from .pipeline import _bar, _measure, finish, plan
 from .registry import DETECTORS
 
@@ -23,10 +24,10 @@ def _measure_shard(tasks: list) -> list:
 
 
 def score_on_ray(root, address: str | None = None, progress: bool = False, skip_incomplete: bool = False,
-                 labels=None) -> dict:
+                 labels=None, false_alarm_rate: float | None = FALSE_ALARM_RATE) -> dict:
     """The report of the dataset at ``root`` measured by Ray tasks (see the module docstring);
-    ``address`` as :func:`datagen.raycluster.ray_connection` takes it, ``labels`` as in
-    :func:`pipeline.score_dataset`."""
+    ``address`` as :func:`datagen.raycluster.ray_connection` takes it, ``labels`` and
+    ``false_alarm_rate`` as in :func:`pipeline.score_dataset`."""
     t0 = time.perf_counter()
     tasks, skipped = plan(root, skip_incomplete)
     by_shard: dict[str, list] = {}
@@ -48,4 +49,4 @@ def score_on_ray(root, address: str | None = None, progress: bool = False, skip_
                 bar.close()
     extracted = {"index_sha256": index_sha256(root), "records": [p for s in by_shard for p in results[s]],
                  "skipped_shards": skipped, "seconds": time.perf_counter() - t0}
-    return finish(extracted, t0, {"backend": "ray", "tasks": len(by_shard)}, DETECTORS, labels)
+    return finish(extracted, t0, {"backend": "ray", "tasks": len(by_shard)}, DETECTORS, labels, false_alarm_rate)

@@ -188,21 +188,23 @@ def score(extracted: dict, detectors=DETECTORS, false_alarm_rate: float | None =
 
 
 def score_dataset(root, progress: bool = False, workers: int = 1, detectors=DETECTORS,
-                  skip_incomplete: bool = False, labels=None) -> dict:
+                  skip_incomplete: bool = False, labels=None, false_alarm_rate: float | None = FALSE_ALARM_RATE) -> dict:
     """Score every subject of the dataset at ``root``; returns the report (subjects sorted worst first).
 
     ``labels``: a folder of reviewers' event logs; the queue's ``rank`` then learns from their
-    verdicts (``learn.py``).
+    verdicts (``learn.py``). ``false_alarm_rate``: as in :func:`score`.
     """
     t0 = time.perf_counter()
     extracted = extract(root, max(1, int(workers)), progress, detectors, skip_incomplete)
-    return finish(extracted, t0, {"workers": max(1, int(workers))}, detectors, labels)
+    return finish(extracted, t0, {"workers": max(1, int(workers))}, detectors, labels, false_alarm_rate)
 
 
-def finish(extracted: dict, t0: float, timing: dict, detectors=DETECTORS, labels=None) -> dict:
-    """The report from the records ``extracted`` (:func:`score`, then learning from ``labels``), its
-    ``timing`` the measuring seconds, the seconds since ``t0`` (perf_counter) and ``timing``."""
-    report = score(extracted, detectors)
+def finish(extracted: dict, t0: float, timing: dict, detectors=DETECTORS, labels=None,
+           false_alarm_rate: float | None = FALSE_ALARM_RATE) -> dict:
+    """The report from the records ``extracted`` (:func:`score` at ``false_alarm_rate``, then learning
+    from ``labels``), its ``timing`` the measuring seconds, the seconds since ``t0`` (perf_counter)
+    and ``timing``."""
+    report = score(extracted, detectors, false_alarm_rate)
     if labels is not None:
         learn_from(report, labels, thumbnails(extracted, report))
     total = time.perf_counter() - t0

@@ -31,6 +31,7 @@ from datagen.errors import DatasetError, UserError
 from datagen.files import atomic_write, read_json
 from datagen.shards import index_sha256, job_shards, read_index, shard_index
 
+from .detector import FALSE_ALARM_RATE
 from .pipeline import extract, finish
 from .registry import DETECTORS
 
@@ -186,10 +187,12 @@ def measure_slice(root, k: int, n: int, out=None, workers: int = 1, progress: bo
     return write_slice(root, k, n, extracted, out, detectors), extracted
 
 
-def merge_slices(root, out=None, detectors=DETECTORS, labels=None) -> dict:
-    """The report of the whole dataset from its slices (see :func:`read_slices`); ``labels`` as in
-    :func:`pipeline.score_dataset`. Its ``timing`` counts the slices' measuring seconds added up
+def merge_slices(root, out=None, detectors=DETECTORS, labels=None, false_alarm_rate: float | None = FALSE_ALARM_RATE
+                 ) -> dict:
+    """The report of the whole dataset from its slices (see :func:`read_slices`); ``labels`` and
+    ``false_alarm_rate`` as in :func:`pipeline.score_dataset`. Its ``timing`` counts the slices' measuring seconds added up
     and the merge's own."""
     t0 = time.perf_counter()
     extracted = read_slices(root, out, detectors)
-    return finish(extracted, t0 - extracted["seconds"], {"slices": extracted["slices"]}, detectors, labels)
+    return finish(extracted, t0 - extracted["seconds"], {"slices": extracted["slices"]}, detectors, labels,
+                  false_alarm_rate)
