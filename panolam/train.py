@@ -144,13 +144,18 @@ def first_target(cfg: TrainConfig) -> int:
     return 0 if cfg.targets == "all" else 1
 
 
+def steps_share(step: int, cfg: TrainConfig) -> float:
+    """The share of the steps after warm-up that ``step`` has done (the decay's progress without a time limit)."""
+    return (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps)
+
+
 def lr_factor(step: int, cfg: TrainConfig, progress: Optional[float] = None) -> float:
     """Linear warm-up to 1 over ``cfg.warmup_steps``, then cosine decay to ``cfg.lr_floor`` as
     ``progress`` goes from 0 to 1 (default: the share of the steps after warm-up done)."""
     if step < cfg.warmup_steps:
         return (step + 1) / cfg.warmup_steps
     if progress is None:
-        progress = (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps)
+        progress = steps_share(step, cfg)
     return cfg.lr_floor + (1 - cfg.lr_floor) * 0.5 * (1 + math.cos(math.pi * min(1.0, progress)))
 
 
@@ -187,7 +192,7 @@ class Schedule:
     def factor(self, step: int) -> float:
         """The factor of ``step`` (LambdaLR's function): warm-up, then the decay at the progress reached."""
         if step >= self.cfg.warmup_steps:
-            self.advance((step - self.cfg.warmup_steps) / max(1, self.cfg.steps - self.cfg.warmup_steps))
+            self.advance(steps_share(step, self.cfg))
         return lr_factor(step, self.cfg, self.progress)
 
 
