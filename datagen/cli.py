@@ -7,6 +7,7 @@ import sys
 
 from .cameras import PROTOCOLS
 from .errors import OneLineParser, UserError, run_command
+from .threads import add_option as add_threads_option
 from .text import byte_size, plural, readable
 from .generators import AVAILABLE
 
@@ -58,6 +59,7 @@ def build_parser() -> OneLineParser:
                         "cuda:(k mod the GPU count), so more workers than GPUs share them; --device cuda:N puts all "
                         "on GPU N. With --backend ray, each task gets the CPU cores divided by N")
     s.add_argument("--backend", default="local", choices=("local", "ray"), help="run shard tasks here or on Ray")
+    add_threads_option(s, "each worker process (or Ray task)")
     s.add_argument("--gpus-per-task", type=float, default=None, metavar="G",
                    help="--backend ray with CUDA: the share of one GPU each shard task asks Ray for, in (0, 1]; "
                         "0.5 runs two tasks per GPU (default 1). Each task renders on the GPU Ray gives it")
@@ -196,7 +198,7 @@ def _sample(args) -> int:
                    shape_level=args.shape_level)
     summary = run_sample(spec, workers=args.workers, backend=args.backend, ray_address=args.ray_address,
                          gpus_per_task=args.gpus_per_task, shard_index=args.shard_index, num_shards=args.num_shards,
-                         resume=args.resume, progress=not args.quiet)
+                         resume=args.resume, progress=not args.quiet, threads=args.threads)
     if not summary["shards_written"] and summary["shards_skipped"]:
         part = "this job's " if args.num_shards > 1 else ""
         print(f"{args.out}: complete ({part}{summary['shards_skipped']} of {plural(spec.num_shard_files, 'shard')}, "
@@ -230,10 +232,11 @@ def _preview(args) -> int:
 
 
 def _export(args) -> int:
-    from .export import complete_subjects, export_subject
+    from .export import check_subjects, complete_subjects, export_subject
     from .preview import parse_subject
 
     subjects = [parse_subject(s) for s in args.subject] if args.subject else complete_subjects(args.dataset)
+    subjects = check_subjects(args.dataset, subjects)  # every one, before anything is written
     if not subjects:
         raise UserError(f"{args.dataset}: no complete shards to export (see datagen verify)")
     for key in subjects:

@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import difflib
 import errno
+import importlib
 import sys
 
 
@@ -13,6 +14,23 @@ class UserError(Exception):
 
 class DatasetError(UserError):
     """A problem with a dataset on disk, stated in one line naming the file."""
+
+
+class NotInstalled(UserError, ImportError):
+    """An optional library, or a file it ships, is missing; the one line says what to install."""
+
+
+def missing_extra(extra: str, what: str, why) -> NotInstalled:
+    """The error for ``what`` run without the optional dependencies ``extra`` (pyproject.toml), with the pip line."""
+    return NotInstalled(f"{what} needs the '{extra}' extra ({why}): pip install 'panolam-toolkit[{extra}]'")
+
+
+def optional_import(module: str, extra: str, what: str = "this command"):
+    """``module``, imported; :func:`missing_extra` when it cannot be (not installed, or broken)."""
+    try:
+        return importlib.import_module(module)
+    except ImportError as e:
+        raise missing_extra(extra, what, e) from None
 
 
 class DefaultsHelpFormatter(argparse.HelpFormatter):
@@ -58,9 +76,12 @@ class OneLineParser(argparse.ArgumentParser):
 
 
 def run_command(prog: str, commands: dict, args, interrupted: str) -> int:
-    """Run ``commands[args.command](args)``; user mistakes become one line on stderr and exit 2."""
+    """Run ``commands[args.command](args)`` on the CPU threads :mod:`datagen.threads` chooses (``--threads``
+    where the command has it); user mistakes become one line on stderr and exit 2."""
+    from .threads import for_command
     try:
-        return commands[args.command](args)
+        with for_command(getattr(args, "threads", None)):
+            return commands[args.command](args)
     except UserError as e:
         print(f"{prog} {args.command}: error: {e}", file=sys.stderr)
         return 2

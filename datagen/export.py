@@ -8,8 +8,10 @@ Targets: nerfstudio and instant-ngp/Blender take OpenGL cam2world (x right, y up
 COLMAP takes world-to-camera rotation (quaternion) and translation in OpenCV axes. Depth maps
 (nerfstudio, instant-ngp) are z-depth (along the camera's forward axis) in millimetres, 16-bit PNG.
 
-Every subject goes to ``OUT/<subject id>/`` all or nothing: it is written under a temporary folder
-(each file through :func:`atomic_write`) and renamed into place when complete.
+Every requested subject is resolved and checked (:func:`check_subjects`) before anything is written,
+so a wrong id or an incomplete shard writes nothing. Then every subject goes to ``OUT/<subject id>/``
+all or nothing: it is written under a temporary folder (each file through :func:`atomic_write`) and
+renamed into place when complete.
 """
 from __future__ import annotations
 
@@ -21,14 +23,18 @@ from pathlib import Path
 import numpy as np
 
 from .cameras import camera_directions, depth_points, pixel_intrinsics
+from .errors import DatasetError
 from .files import atomic_write
 from .shards import (
+    INDEX_NAME,
     dumps,
     encode_png,
     is_complete,
     read_index,
+    read_sidecar,
     read_subject,
     shard_index,
+    tar_path,
 )
 
 FORMATS = ("nerfstudio", "instant-ngp", "colmap")
@@ -265,6 +271,28 @@ def complete_subjects(root) -> list[str]:
     """Subject ids of the dataset's complete shards, in index order."""
     return [s for shard in read_index(root)["shards"] if is_complete(root, shard_index(shard["name"]))
             for s in shard["subjects"]]
+
+
+def check_subjects(root, keys) -> list[str]:
+    """``keys`` without repeats, once every one is known to be readable: in the dataset's index, in a
+    complete shard (its sidecar, and its tar at the recorded size) that records the subject's byte
+    range. Otherwise one DatasetError naming the dataset and every subject that is not (at most
+    three, then how many more), before anything is written."""
+    shard_of = {s: shard_index(shard["name"]) for shard in read_index(root)["shards"] for s in shard["subjects"]}
+    keys = list(dict.fromkeys(keys))
+    problems = []
+    for key in keys:
+        if key not in shard_of:
+            problems.append(f"{Path(root) / INDEX_NAME}: no subject {key} in this dataset")
+        elif not is_complete(root, shard_of[key]):
+            problems.append(f"{tar_path(root, shard_of[key])}: the shard holding {key} is not complete "
+                            "(see datagen verify)")
+        elif key not in read_sidecar(root, shard_of[key])["offsets"]:
+            problems.append(f"{tar_path(root, shard_of[key])}: its sidecar has no byte range for {key}")
+    if problems:
+        more = f"; and {len(problems) - 3} more" if len(problems) > 3 else ""
+        raise DatasetError("; ".join(problems[:3]) + more + "; nothing was exported")
+    return keys
 
 
 def export_subject(root, key: str, fmt: str, out, background: str = "transparent") -> dict:

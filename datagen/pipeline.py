@@ -30,6 +30,7 @@ from .raycluster import ray_connection, ray_results
 from .shapes import check_resolution, encode_mesh, extract_shape
 from .shards import (FORMAT, INDEX_NAME, ShardWriter, dumps, encode_subject, is_complete, job_shards,
                      read_index, remove_partial, shard_name, subject_id, tar_path, view_name)
+from .threads import choose, usable_cpus, use
 
 DEPTH_MEANING = "distance along the unit ray from the camera centre, world units; 0 where alpha is 0"
 CAMERA_CONVENTION = ("OpenCV cam2world (x right, y down, z forward); intrinsics normalized by image size; "
@@ -228,7 +229,7 @@ def on_device(spec: JobSpec, device: str) -> JobSpec:
 def _enter_worker(threads: int, device: str) -> None:
     """Set up a worker process (or a Ray task) to render on ``device`` with ``threads`` CPU threads.
     A CUDA worker makes its GPU the current one, so nothing it runs lands on another."""
-    torch.set_num_threads(threads)
+    use(threads)
     if device.startswith("cuda"):
         torch.cuda.set_device(torch.device(device))
 
@@ -249,9 +250,9 @@ def _pool_task(spec: JobSpec, shard: int) -> dict:
     return write_shard(on_device(spec, device), shard, progress=progress.put)
 
 
-def _run_local(spec: JobSpec, shards: list[int], devices: list[str], bar) -> None:
+def _run_local(spec: JobSpec, shards: list[int], devices: list[str], bar, threads: int | None = None) -> None:
     """Render ``shards`` with one worker process per element of ``devices`` (at most one per shard),
-    in this process when there is one."""
+    in this process when there is one; each worker runs ``choose(workers, threads)`` CPU threads."""
     if len(devices) == 1 or len(shards) <= 1:  # (none left: a resumed dataset that was complete)
         for s in shards:
             write_shard(on_device(spec, devices[0]), s, progress=bar.update)
@@ -261,8 +262,8 @@ def _run_local(spec: JobSpec, shards: list[int], devices: list[str], bar) -> Non
 
     ctx = mp.get_context("spawn")
     progress, handout = ctx.Queue(), ctx.Queue()
-    threads = max(1, (os.cpu_count() or 1) // len(devices))
     devices = devices[:len(shards)]
+    threads = choose(len(devices), threads)
     for device in devices:
         handout.put(device)
     with ProcessPoolExecutor(max_workers=len(devices), mp_context=ctx,
@@ -388,13 +389,14 @@ def _publish_index(out: Path, index: dict) -> None:
 
 def run_sample(spec: JobSpec, *, workers: int | str = 1, backend: str = "local", ray_address: str | None = None,
                gpus_per_task: float | None = None, shard_index: int = 0, num_shards: int = 1, resume: bool = False,
-               progress: bool = True) -> dict:
+               progress: bool = True, threads: int | None = None) -> dict:
     """Write this job's part of the dataset (shards s with s % num_shards == shard_index).
 
     ``workers``: a count or 'auto' (see :func:`datagen.device.worker_devices`; on the CPU, 'auto' is
     one per CPU core up to this job's shard count); the local backend runs one process per worker,
     Ray gives each task the CPU cores divided by the workers. ``gpus_per_task``: Ray only, the share
-    of a GPU each task asks for when rendering on CUDA (default 1).
+    of a GPU each task asks for when rendering on CUDA (default 1). ``threads``: torch CPU threads of
+    each worker process or task (default: :func:`datagen.threads.choose`; Ray: the cores over the workers).
     A job whose shards are all complete writes nothing, with or without ``resume``.
     Returns a summary: shards written and skipped, subjects in this job's shards, images, seconds.
     """
@@ -405,7 +407,7 @@ def run_sample(spec: JobSpec, *, workers: int | str = 1, backend: str = "local",
         raise UserError(f"unknown backend {backend!r}; choose local or ray")
     mine = job_shards(spec.num_shard_files, shard_index, num_shards)
     requested = requested_device(spec)
-    devices = worker_devices(requested, workers, max(1, min(os.cpu_count() or 1, len(mine))))
+    devices = worker_devices(requested, workers, max(1, min(usable_cpus(), len(mine))))
     gpus = _ray_gpus(backend, requested, devices[0], gpus_per_task)
     generator = make_generator(spec.gan, spec.checkpoint, spec.generator_options)
     index = make_index(spec, generator.describe())
@@ -423,9 +425,9 @@ def run_sample(spec: JobSpec, *, workers: int | str = 1, backend: str = "local",
     start = time.perf_counter()
     try:
         if backend == "ray":
-            _run_ray(spec, todo, ray_address, max(1, (os.cpu_count() or 1) // len(devices)), gpus, bar)
+            _run_ray(spec, todo, ray_address, threads or max(1, usable_cpus() // len(devices)), gpus, bar)
         else:
-            _run_local(spec, todo, devices, bar)
+            _run_local(spec, todo, devices, bar, threads)
     except OSError as e:
         if e.errno == errno.ENOSPC:
             raise UserError(f"disk full while writing {e.filename or spec.out}; "

@@ -7,7 +7,7 @@ import socket
 from contextlib import contextmanager
 from typing import Iterator
 
-from .errors import UserError
+from .errors import UserError, optional_import
 
 
 @contextmanager
@@ -17,10 +17,7 @@ def ray_connection(address: str | None):
     instance made here is closed here. A local instance started here reports no usage statistics,
     has no dashboard UI and keeps its workers' output and its informational messages off the
     terminal. An address that does not answer, or a failed start, is a UserError in one line."""
-    try:
-        import ray
-    except ImportError:
-        raise UserError("the ray backend needs the optional extra: pip install 'panolam-toolkit[ray]'") from None
+    ray = optional_import("ray", "ray", "the ray backend")
     ray_logger = logging.getLogger("ray")
     level = ray_logger.level
     started = not ray.is_initialized()

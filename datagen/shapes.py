@@ -200,43 +200,59 @@ def encode_mesh(mesh: Mesh, fmt: str = "ply") -> bytes:
     return data.encode() if isinstance(data, str) else data
 
 
-def decode_mesh(data: bytes, where: str, fmt: str = "ply") -> Mesh:
-    """A mesh file's bytes -> Mesh (record empty); a DatasetError naming ``where`` when it does not decode."""
-    import trimesh
+def decode_mesh(data: bytes, where: str) -> Mesh:
+    """A PLY file's bytes -> Mesh (record empty), checked to be usable: a DatasetError naming ``where``
+    when it does not decode (its length disagrees with its header's counts), has no faces or no
+    vertex colours, has vertices that are NaN or Inf, or faces that are not triangles of existing
+    vertices. Every path that hands a mesh on goes through here (``datagen shape`` in any format,
+    ``datagen verify``)."""
+    from trimesh.exchange.ply import load_ply
 
-    try:
-        tm = trimesh.load(io.BytesIO(data), file_type=fmt, process=False, force="mesh")
-        vertices, faces = np.asarray(tm.vertices, dtype=np.float32), np.asarray(tm.faces, dtype=np.int64)
-        colors = np.asarray(tm.visual.vertex_colors)[:, :3] if tm.visual.kind == "vertex" else None
+    try:  # the reader's raw arrays: a trimesh.Trimesh would index colours by the faces before any check
+        ply = load_ply(io.BytesIO(data))
+        vertices, faces = np.asarray(ply["vertices"], dtype=np.float32), np.asarray(ply.get("faces", ()))
+        colors = ply.get("vertex_colors")
     except Exception as e:  # the reader's own error: say which file
-        raise DatasetError(f"{where}: the shape does not decode as a {fmt.upper()} mesh ({type(e).__name__}: {e})") from None
-    if len(faces) == 0:
+        raise DatasetError(f"{where}: the shape does not decode as a PLY mesh ({type(e).__name__}: {e})") from None
+    if faces.size == 0:
         raise DatasetError(f"{where}: the shape is empty (no faces)")
-    if colors is None or colors.shape != vertices.shape:
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise DatasetError(f"{where}: the shape's faces are not triangles")
+    if colors is None or len(colors) != len(vertices):
         raise DatasetError(f"{where}: the shape has no vertex colours")
-    return Mesh(vertices=vertices, faces=faces, colors=colors.astype(np.uint8), record={})
+    if not np.isfinite(vertices).all():
+        raise DatasetError(f"{where}: the shape has NaN or Inf vertices")
+    low, high = int(faces.min()), int(faces.max())
+    if low < 0 or high >= len(vertices):
+        bad = low if low < 0 else high
+        raise DatasetError(f"{where}: the shape's faces index vertex {bad:,} of {len(vertices):,}, which does not "
+                           "exist (damaged bytes; datagen verify checks the whole dataset)")
+    return Mesh(vertices=vertices, faces=faces.astype(np.int64), colors=np.asarray(colors)[:, :3].astype(np.uint8),
+                record={})
 
 
-def check_mesh(data: bytes, record: dict, where: str) -> list[str]:
-    """What ``datagen verify`` checks of a stored shape: it decodes as a PLY mesh with vertex
-    colours, is not empty, its counts are those its record gives, every vertex is finite and
-    inside the box the record names, and every face indexes existing vertices."""
+def checked_mesh(data: bytes, record: dict, where: str) -> tuple[Mesh | None, list[str]]:
+    """The one check of a shape against its record, for ``datagen verify`` and ``datagen shape``:
+    (the mesh, or None when it does not decode; the problems). On top of :func:`decode_mesh`: its
+    vertex and face counts are those its record gives, and every vertex is inside the box the record
+    names (give or take ``BOX_TOLERANCE``)."""
     try:
         mesh = decode_mesh(data, where)
     except DatasetError as e:
-        return [str(e)]
+        return None, [str(e)]
     problems = []
     if [len(mesh.vertices), len(mesh.faces)] != [record.get("vertices"), record.get("faces")]:
         problems.append(f"{where}: the shape has {len(mesh.vertices)} vertices and {len(mesh.faces)} faces, its "
                         f"record says {record.get('vertices')} and {record.get('faces')}")
     half = np.asarray(record.get("box_half_extent", [0.0] * 3), dtype=np.float64)
-    if not np.isfinite(mesh.vertices).all():
-        problems.append(f"{where}: the shape has NaN or Inf vertices")
-    elif (np.abs(mesh.vertices) > half + BOX_TOLERANCE).any():
+    if (np.abs(mesh.vertices) > half + BOX_TOLERANCE).any():
         problems.append(f"{where}: the shape has vertices outside its box (half extent {half.tolist()})")
-    if (mesh.faces.min() < 0 or mesh.faces.max() >= len(mesh.vertices)):
-        problems.append(f"{where}: the shape's faces index missing vertices")
-    return problems
+    return mesh, problems
+
+
+def check_mesh(data: bytes, record: dict, where: str) -> list[str]:
+    """What ``datagen verify`` reports of a stored shape: the problems :func:`checked_mesh` finds."""
+    return checked_mesh(data, record, where)[1]
 
 
 def stored_shape(root, key: str):
@@ -308,8 +324,11 @@ def write_shape(root, key: str, out, **options) -> dict:
         raise UserError(f"{out}: the file name must end in .ply, .obj or .glb")
     start = time.perf_counter()
     data, record, how = subject_shape(root, key, **options)
-    if fmt != "ply":
-        data = encode_mesh(decode_mesh(data, f"{root}: {key}"), fmt)
+    mesh, problems = checked_mesh(data, record, f"{root}: {key}")
+    if problems:
+        raise DatasetError("; ".join(problems))
+    if fmt != "ply":  # the PLY is copied as it is, once it has passed the same check
+        data = encode_mesh(mesh, fmt)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         atomic_write(out, data)

@@ -6,7 +6,8 @@ import json
 import sys
 from pathlib import Path
 
-from datagen.errors import OneLineParser, UserError, run_command
+from datagen.errors import OneLineParser, UserError, optional_import, run_command
+from datagen.threads import add_option as add_threads_option
 from datagen.shards import read_index
 
 from .manifest import UNREVIEWED
@@ -30,6 +31,7 @@ def build_parser() -> OneLineParser:
     a = sub.add_parser("auto", help="score every subject with automatic pre-flags (worst first)")
     a.add_argument("dataset", help="dataset folder (datagen sample --out)")
     a.add_argument("--workers", type=int, default=1, help="processes that read and measure subjects")
+    add_threads_option(a)
     a.add_argument("--learn", metavar="LABELS",
                    help="re-rank the unreviewed subjects with a classifier fitted on the verdicts in this folder of "
                         "event logs (after about 20 or more verdicts with both good and bad ones)")
@@ -128,6 +130,7 @@ def build_queue(target: str, queue: str):
 def _auto(args) -> int:
     from datagen.preflags import write_preflags
 
+    optional_import("cv2", "faces")
     from .preflags import FALSE_ALARM_RATE, FLAG_AT, score_dataset
 
     rate = FALSE_ALARM_RATE if args.false_alarm_rate is None else args.false_alarm_rate
@@ -149,11 +152,14 @@ def _auto(args) -> int:
         raise UserError("--out is the folder of slice files: only with --shard-index or --merge")
     if args.ray_address is not None and args.backend != "ray":
         raise UserError("--ray-address: only with --backend ray")
+    if not args.merge:
+        from datagen.faces import check_dlib
+        check_dlib()
     if sliced:
         from .preflags.slices import measure_slice
 
         path, extracted = measure_slice(args.dataset, args.shard_index, args.num_shards, args.out, args.workers,
-                                        not args.quiet, skip_incomplete=args.skip_incomplete)
+                                        not args.quiet, skip_incomplete=args.skip_incomplete, threads=args.threads)
         skipped = extracted["skipped_shards"]
         print(f"measured {len(extracted['records'])} subjects of slice {args.shard_index} of {args.num_shards} -> "
               f"{path}" + (f"; SKIPPED {len(skipped)} incomplete shard(s): {', '.join(skipped[:5])}"
@@ -172,7 +178,8 @@ def _auto(args) -> int:
                               skip_incomplete=args.skip_incomplete, labels=args.learn, false_alarm_rate=rate)
     else:
         report = score_dataset(args.dataset, progress=not args.quiet, workers=args.workers,
-                               skip_incomplete=args.skip_incomplete, labels=args.learn, false_alarm_rate=rate)
+                               skip_incomplete=args.skip_incomplete, labels=args.learn, false_alarm_rate=rate,
+                               threads=args.threads)
     path = write_preflags(args.dataset, report)
     flagged = [r for r in report["subjects"] if r["flags"]]
     skipped = report["summary"]["skipped_shards"]
@@ -200,6 +207,7 @@ def _auto(args) -> int:
 
 
 def _review(args) -> int:
+    optional_import("pyvista", "review")
     from .review import ReviewApp
 
     root, items = build_queue(args.target, args.queue)
@@ -223,7 +231,8 @@ def _review(args) -> int:
     if app.pending:
         print(f"{len(app.pending)} triage change(s) were not committed (nothing was written for them)")
     if app.log.failed_writes:
-        raise UserError(f"{app.log.failed_writes} write(s) to the review log {app.log.path} failed (disk full?); "
+        raise UserError(f"{app.log.failed_writes} write(s) to the review log {app.log.path} failed (a full disk, "
+                        "or its lock taken over by another window; each said which); "
                         "the verdicts saved before each are kept, those not saved must be given again")
     return 0
 

@@ -19,7 +19,8 @@ import time
 from pathlib import Path
 
 from datagen.device import DEVICE_HELP
-from datagen.errors import OneLineParser, UserError, run_command
+from datagen.errors import OneLineParser, UserError, optional_import, run_command
+from datagen.threads import add_option as add_threads_option
 from datagen.text import plural
 
 from .config import PATH_FIELDS, ModelConfig, TrainConfig
@@ -58,6 +59,7 @@ def _train_options(p):
     p.add_argument("--nproc", type=at_least(1), default=1,
                    help="data-parallel processes on this machine (with --device cuda, process i on GPU i)")
     p.add_argument("--device", default="cpu", help=DEVICE_HELP)
+    add_threads_option(p, "each training process")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -98,6 +100,9 @@ def build_parser() -> OneLineParser:
     p.add_argument("--gallery", type=at_least(0), metavar="N",
                    help="subjects in gallery.png: the input, the reconstruction and the truth from the front, left, "
                         "back and right (default: 8; 0: none)")
+    p.add_argument("--renders", metavar="DIR",
+                   help="also write each evaluated subject's reconstruction, rendered from all its stored cameras, as "
+                        "a dataset in DIR (label-tool auto and review read it)")
     _model_path_options(p, where_now=True)
     p.add_argument("--device", default="cpu", help=DEVICE_HELP)
     return parser
@@ -142,12 +147,13 @@ def _run_directory(args) -> None:
 
 
 def cmd_train(args) -> int:
+    optional_import("tensorboard", "model")
     from . import launch
     _run_directory(args)
     _check_device(args)
     model_cfg, train_cfg = _configs(args)
     job = launch.Job(args.data, args.manifest, args.out, args.resume, args.device, model_cfg, train_cfg,
-                     progress=not args.no_progress, started=args.started)
+                     progress=not args.no_progress, started=args.started, threads=args.threads)
     entry = launch.run(job, args.nproc)
     if entry:
         print(f"step {entry['step']}: loss {entry['loss']:.4f}, PSNR {entry['psnr_dense']:.2f} dB; "
@@ -157,6 +163,7 @@ def cmd_train(args) -> int:
 
 # -- infer ------------------------------------------------------------------------------------------------------
 def cmd_infer(args) -> int:
+    optional_import("cv2", "faces")
     from . import infer
     from .checkpoints import load_model
     from .photos import load_image, prepare_photo
@@ -219,8 +226,8 @@ def cmd_eval(args) -> int:
         notes.append("LPIPS: not computed (no --lpips-backbone/--lpips-lin weights given).")
     faces = None
     if not args.no_faces:
-        from datagen import faces as face_tools
         try:
+            face_tools = optional_import("datagen.faces", "faces", "CSIM/APD")
             face_tools.check_dlib()
             faces = face_tools
         except ImportError as e:
@@ -244,6 +251,9 @@ def cmd_eval(args) -> int:
         written.append(write_gallery(pictures, out / "gallery.png"))
         notes.append(f"![{plural(len(pictures), 'subject')}: the input, ours and the truth from the front, left, back "
                      "and right](gallery.png)")
+    if args.renders:
+        from .renders import write_reconstructions
+        written.append(write_reconstructions(model, args.data, subjects, args.renders))
     md, js = write_report(result, out, f"PanoLAM evaluation: {args.split} split of {args.data}", notes)
     print(md.read_text())
     print("wrote " + ", ".join(str(p) for p in [md, js, *written]))

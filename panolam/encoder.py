@@ -20,7 +20,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from datagen.device import constant
-from datagen.errors import UserError
+from datagen.errors import UserError, optional_import
 
 # transformers is imported where DINOv2 is loaded: importing it takes seconds and the small encoder does not need it.
 
@@ -147,7 +147,7 @@ def _meta_checkpoint(path: Path):
 def load_dinov2(weights: str | Path) -> nn.Module:
     """A frozen float32 Dinov2Model / Dinov2WithRegistersModel in eval mode from a Hugging Face folder
     (config.json + weights, local files only) or Meta's checkpoint file."""
-    import transformers
+    transformers = optional_import("transformers", "model", "the DINOv2 encoder")
 
     path = Path(weights)
     if not path.exists():

@@ -22,7 +22,7 @@ from PIL import Image
 
 from datagen.cameras import FOV_MEAN, HEAD360_PIVOT, RADIUS_MEAN, ViewSet, named_views
 from datagen.device import constant
-from datagen.errors import UserError
+from datagen.errors import UserError, optional_import
 from datagen.files import atomic_write
 from datagen.shards import to_uint8
 
@@ -103,7 +103,7 @@ TURNTABLE_FORMATS = (".mp4", ".gif")
 
 def _mp4(frames: list[np.ndarray], fps: int) -> bytes:
     """H.264 (yuv420p, CRF 18) in MP4; odd frame sizes are padded by one edge pixel."""
-    import av
+    av = optional_import("av", "model", "an .mp4 turntable")
     h, w = frames[0].shape[:2]
     buf = io.BytesIO()
     with av.open(buf, mode="w", format="mp4") as container:

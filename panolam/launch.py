@@ -3,7 +3,7 @@ processes ``torchrun`` started (``torchrun --nproc-per-node N -m panolam train .
 ``WORLD_SIZE``, ``RANK`` and ``LOCAL_RANK``).
 
 Processes average gradients with torch.distributed: gloo on CPU (each process gets its share of
-the cores), NCCL on CUDA (the process of local rank i on GPU i: ``--device cuda``, no index). A user
+the cores, :mod:`datagen.threads`), NCCL on CUDA (the process of local rank i on GPU i: ``--device cuda``, no index). A user
 mistake in any process is one line and exit status 2, as in a single process.
 """
 from __future__ import annotations
@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Optional
 
 from datagen.errors import UserError, os_error_line
+from datagen.threads import choose, use
 
 from .config import ModelConfig, TrainConfig
 
@@ -32,6 +33,7 @@ class Job:
     training: TrainConfig
     progress: bool = True
     started: Optional[float] = None  # time.monotonic() the time limit counts from
+    threads: Optional[int] = None  # torch CPU threads of each process (None: datagen.threads.choose)
 
     def run(self, device: str) -> dict:
         from .train import train
@@ -104,6 +106,7 @@ def run(job: Job, nproc: int = 1) -> Optional[dict]:
 def _as_torchrun_process(job: Job) -> Optional[dict]:
     """This process's share of a torchrun job; the log entry on rank 0 only (one report per run)."""
     import torch.distributed as dist
+    use(choose(int(os.environ.get("LOCAL_WORLD_SIZE", "1")), job.threads))
     device = _join(job, int(os.environ.get("LOCAL_RANK", "0")))
     try:
         entry = job.run(device)
@@ -114,10 +117,9 @@ def _as_torchrun_process(job: Job) -> Optional[dict]:
 
 def _child(rank: int, world: int, port: int, job: Job) -> None:
     """One of ``nproc`` processes started by :func:`run`."""
-    import torch
     import torch.distributed as dist
     os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE=str(world))
-    torch.set_num_threads(max(1, (os.cpu_count() or 1) // world))
+    use(choose(world, job.threads))
     device = _join(job, rank, rank=rank, world_size=world)
     try:
         job.run(device)

@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 from PIL import Image, ImageOps, UnidentifiedImageError
 
+from datagen.errors import optional_import
 from datagen.faces import FaceError, detect_faces, head_quad, landmarks, to_float_rgb, warp_quad
 from datagen.shards import to_uint8
 
@@ -123,7 +124,7 @@ def _box_reduce(a: np.ndarray, k: int) -> np.ndarray:
 def _openimageio_only() -> frozenset:
     """File suffixes of the formats OpenImageIO reads and Pillow does not (.exr, .hdr, .dpx, ...):
     a file Pillow cannot read goes to OpenImageIO only when its name says it is one of them."""
-    import OpenImageIO as oiio
+    oiio = optional_import("OpenImageIO", "photos", "a photo Pillow cannot decode")
     suffixes = {"." + ext for fmt in oiio.get_string_attribute("extension_list").split(";")
                 for ext in fmt.partition(":")[2].split(",") if ext}
     return frozenset(suffixes - set(Image.registered_extensions()))

@@ -77,6 +77,7 @@ import torch.nn.functional as F
 from torch.autograd.function import once_differentiable
 
 from datagen.cameras import pixel_intrinsics
+from datagen.errors import optional_import
 
 from .gaussians import Gaussians
 
@@ -416,7 +417,7 @@ def _rasterize_gsplat(means, quats, scales, opacities, colors, viewmat, K, width
                       far_plane, tile_size):
     """All cameras in one ``gsplat.rasterization`` call ("RGB+ED"), the background composited by
     gsplat (``backgrounds=``, one row per camera)."""
-    from gsplat import rasterization
+    rasterization = optional_import("gsplat", "cuda", "the gsplat rasterizer").rasterization
 
     cameras = viewmat.dim() == 3
     viewmats = viewmat if cameras else viewmat[None]

@@ -310,7 +310,9 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
     clock = _Clock(started, cfg.time_limit_s)
     entry, start = {}, step
     model.train()
+    ready = time.perf_counter()
     for batch in _batches(loader):
+        data_s = time.perf_counter() - ready  # waiting for the loader (decoding, resizing), apart from the step
         batch = batch.to(device)
         t0 = time.perf_counter()
         loss, parts, renders = compute_losses(model, batch, cfg, perceptual, autocast=bf16_autocast(device))
@@ -344,7 +346,7 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
         scheduler.step()
         step += 1
         entry = {"step": step, "loss": loss_v, "lr": lr, "grad_norm": norm_v,
-                 "seconds": time.perf_counter() - t0, **dict(zip(parts, part_v))}
+                 "seconds": time.perf_counter() - t0, "data_s": data_s, **dict(zip(parts, part_v))}
         history.append(entry)
         if bar is not None:
             bar.update(1)
@@ -352,7 +354,8 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
         if writer is not None:
             logged = step % cfg.log_every == 0 or step == cfg.steps
             _log_text(out, f"step {step}: loss {entry['loss']:.4f}, PSNR {entry['psnr_dense']:.2f} dB, "
-                           f"lr {entry['lr']:.2e}, {entry['seconds']:.2f} s/step", echo=logged and bar is None)
+                           f"lr {entry['lr']:.2e}, {entry['seconds']:.2f} s/step, {data_s:.3f} s data",
+                      echo=logged and bar is None)
             if logged:
                 for k, v in entry.items():
                     if k != "step":
@@ -369,6 +372,7 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
                 _log_text(out, f"stopped at step {step}: another step would end after the {cfg.time_limit_s:g} s "
                                f"time limit; --resume continues", echo=bar is None)
             break
+        ready = time.perf_counter()
     if bar is not None:
         bar.close()
     if writer is not None:

@@ -317,3 +317,23 @@ def test_a_failed_export_leaves_the_earlier_one(exported, tmp_path, monkeypatch,
     assert sorted(p.name for p in tmp_path.iterdir()) == [SUBJECT]  # nothing temporary left
     assert (tmp_path / SUBJECT / "sparse" / "0" / "images.txt").read_bytes() == before
     assert _png(tmp_path / SUBJECT / "images" / "v00.png").shape[-1] == 4  # still the first (RGBA) export
+
+
+def test_every_subject_is_checked_before_anything_is_written(tiny_dataset, tmp_path, capsys):
+    """A missing id, or a subject of an incomplete shard, after a good one: nothing is written."""
+    from datagen.shards import sidecar_path
+    from tests.test_dataset import copy_dataset
+
+    out = tmp_path / "out"
+    assert main(["export", str(tiny_dataset), "--format", "colmap", "--subject", "0", "99", "--out", str(out)]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "no subject subj00000099" in lines[0] and "nothing was exported" in lines[0]
+    assert not out.exists()
+    ds = copy_dataset(tiny_dataset, tmp_path / "ds")
+    sidecar_path(ds, 1).unlink()  # shard 1 (subject 2) is no longer complete
+    assert main(["export", str(ds), "--format", "nerfstudio", "--subject", "0", "1", "2", "--out", str(out)]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "shard-000001.tar: the shard holding subj00000002 is not complete" in lines[0]
+    assert not out.exists()
+    assert main(["export", str(ds), "--format", "nerfstudio", "--subject", "1", "0", "1", "--out", str(out)]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["subj00000000", "subj00000001"]

@@ -3,13 +3,12 @@ and Ray tasks, and the errors for requests that cannot be met. No GPU needed: th
 is mocked, and nothing here starts Ray or a worker process."""
 from __future__ import annotations
 
-import os
 from concurrent.futures import Future
 
 import pytest
 import torch
 
-from datagen import pipeline
+from datagen import pipeline, threads
 from datagen.cli import main
 from datagen.device import ray_task_device, worker_devices
 from datagen.errors import UserError
@@ -137,7 +136,9 @@ def recorded(monkeypatch):
     monkeypatch.setattr(pipeline, "write_shard", write_shard)
     monkeypatch.setattr(torch.cuda, "set_device", lambda d: log["current"].append(str(d)))
     monkeypatch.setattr(torch, "set_num_threads", log["threads"].append)
-    monkeypatch.setattr(os, "cpu_count", lambda: 8)
+    monkeypatch.setattr(threads, "usable_cpus", lambda: 8)
+    monkeypatch.setattr(threads, "busy_cpus", lambda: 0)
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     return log
 
 
@@ -179,8 +180,8 @@ def test_the_index_records_neither_the_device_nor_the_memory_budget(tmp_path):
 
 def test_auto_workers_on_the_cpu_are_the_cores_up_to_the_shard_count(tmp_path, monkeypatch):
     seen = []
-    monkeypatch.setattr(pipeline, "_run_local", lambda spec, shards, devices, bar: seen.append(devices))
-    monkeypatch.setattr(os, "cpu_count", lambda: 8)
+    monkeypatch.setattr(pipeline, "_run_local", lambda spec, shards, devices, bar, threads: seen.append(devices))
+    monkeypatch.setattr(pipeline, "usable_cpus", lambda: 8)
     run_sample(tiny_spec(tmp_path / "a"), workers="auto", progress=False)  # 2 shards
     run_sample(tiny_spec(tmp_path / "b", subjects=40), workers="auto", progress=False)  # 20 shards
     assert seen == [["cpu"] * 2, ["cpu"] * 8]

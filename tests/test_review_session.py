@@ -64,7 +64,7 @@ def test_a_skip_stays_unreviewed_and_next_unreviewed_finds_it(session):
         s.verdict("good")
     assert s.first_unreviewed(s.pos + 1) == 1   # wraps around to the skipped subject
     assert "reviewed 6, left 1 (1 skipped)" in s.status_lines()[0]
-    assert s.status_lines(view3d=True)[0].endswith("3D view")
+    assert s.status_lines(view3d="the stored mesh")[0].endswith("3D view: the stored mesh")
 
 
 def test_undo_cancels_the_latest_verdict_and_says_where(session, tmp_path):
@@ -126,8 +126,57 @@ def test_a_session_resumes_from_its_log(session, tmp_path):
     s.close()
     again = session()
     assert (again.pos, again.done, again.skipped) == (3, 3, 1)
-    assert again.resume_notice() == ("saved", f"3 of 7 reviewed so far; log {tmp_path / 'labels' / 'alice.jsonl'}")
-    assert session(reviewer="bob").pos == 0   # another reviewer's log is another session
+    log = tmp_path / "labels" / "alice.jsonl"
+    assert again.resume_notice() == ("saved", f"resumed: 4 verdicts from {log} (3 of 7 in this queue reviewed)")
+    bob = session(reviewer="bob")             # another reviewer's log is another session
+    assert bob.pos == 0 and bob.resume_notice() == ("saved", f"new log {log.with_name('bob.jsonl')}: 0 of 7 reviewed")
+
+
+def test_a_restart_after_a_cut_line_says_what_it_recovered(session, tmp_path):
+    """A crash mid-write leaves a cut last line: the reopened session names it, once dropped, with
+    the verdicts it resumes from; reopened again, the line (now closed) still reads as a cut write."""
+    s = session()
+    s.verdict("good")
+    s.verdict("bad", ("blur",))
+    s.close()
+    log = tmp_path / "labels" / "alice.jsonl"
+    with open(log, "ab") as f:
+        f.write(b'{"action": "good", "reason')      # the write a crash cut short
+    again = session()
+    assert again.log.problems == [f"{log}:3: partial last line, dropped"]
+    assert again.resume_notice() == ("warn", f"resumed: 2 verdicts from {log} (2 of 7 in this queue reviewed); "
+                                             "line 3: partial last line, dropped")
+    again.verdict("skip")
+    again.close()
+    third = session()
+    assert third.log.problems == [f"{log}:3: partial line (a write cut short, closed by a later session), dropped"]
+    assert (third.done, third.skipped, third.pos) == (2, 1, 2)
+
+
+def test_log_problems_show_the_first_and_count_the_rest(session, tmp_path):
+    log = tmp_path / "labels" / "alice.jsonl"
+    log.parent.mkdir()
+    good = '{{"seq": {}, "time": "t", "reviewer": "alice", "subject": "{}", "shard": "shard-000000", "action": "good"}}'
+    log.write_text("\n".join([good.format(1, SUBJECTS[0]), good.format(1, SUBJECTS[1]),
+                              good.format("null", SUBJECTS[2]), good.format(2, SUBJECTS[3])]) + "\n")
+    kind, message = session().resume_notice()
+    assert kind == "warn" and message == (f"resumed: 3 verdicts from {log} (3 of 7 in this queue reviewed); "
+                                          "line 2: event number 1 repeats line 1; 1 more log problem (listed on "
+                                          "the terminal)")
+
+
+def test_next_unreviewed_says_when_none_is_left_and_stays(session):
+    s = session(n=3)
+    s.verdict("good")
+    s.pos = 0
+    assert s.next_unreviewed() is None and s.pos == 1
+    s.verdict("good")
+    assert s.pos == 2 and s.next_unreviewed() == ("warn", f"{SUBJECTS[2]} (shown) is the only unreviewed "
+                                                          "subject left")
+    s.verdict("bad", ("other",))
+    s.pos = 1
+    assert s.next_unreviewed() == ("warn", "all 3 subjects of this queue are reviewed: no unreviewed subject left")
+    assert s.pos == 1
 
 
 def test_verdict_keys_work_in_the_3d_view(tiny_dataset, tmp_path):

@@ -15,21 +15,26 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytest.importorskip("pyvista", reason="the review window needs pyvista")
+pyvista = pytest.importorskip("pyvista", reason="the review window needs pyvista")
 
 from PIL import Image, ImageDraw, ImageFont  # noqa: E402
 
 from datagen.cameras import intrinsics, look_at, rays  # noqa: E402
 from datagen.errors import UserError  # noqa: E402
 from datagen.files import atomic_write  # noqa: E402
-from datagen.pipeline import JobSpec, make_index, software_info  # noqa: E402
-from datagen.shards import INDEX_NAME, ShardWriter, dumps, iter_tar_samples, read_index, subject_id  # noqa: E402
+from datagen.pipeline import JobSpec, make_index, run_sample, software_info  # noqa: E402
+from datagen.shapes import decode_mesh  # noqa: E402
+from datagen.shards import (INDEX_NAME, SHAPE_FIELD, ShardWriter, dumps, iter_tar_samples, read_index,  # noqa: E402
+                            subject_id)
+from tests.conftest import tiny_spec  # noqa: E402
 from labeling_tool.review import app as review_app  # noqa: E402
 from labeling_tool.cli import build_queue, main as label_main  # noqa: E402
 from datagen.cameras import depth_points  # noqa: E402
-from datagen.events import read_log  # noqa: E402
+from datagen.events import EventLog, read_log  # noqa: E402
+from datagen.preview import font  # noqa: E402
 from labeling_tool.review import (BACKGROUND, COLORS, FLAG_REASON, HELP, Layout, Prefetcher,  # noqa: E402
                                   QueueItem, ReviewApp, Window, fit_window, polydata, surface_actor, surface_mesh)
+from labeling_tool.review.layout import NOTICE_COLORS, hud_height, text_line, text_size  # noqa: E402
 from labeling_tool.manifest import compile_manifest  # noqa: E402
 from labeling_tool.preflags import DETECTOR_NAMES  # noqa: E402
 
@@ -41,11 +46,11 @@ S0, S1, S2 = "subj00000000", "subj00000001", "subj00000002"
 def make_app(tiny_dataset, tmp_path):
     apps = []
 
-    def make(reviewer="alice", queue=None, **kw):
+    def make(reviewer="alice", queue=None, dataset=tiny_dataset, **kw):
         if queue is None:
-            _, queue = build_queue(str(tiny_dataset), "all")
+            _, queue = build_queue(str(dataset), "all")
         kw.setdefault("window_size", (800, 450))
-        app = ReviewApp(tiny_dataset, queue, reviewer, tmp_path / "labels", off_screen=True, **kw)
+        app = ReviewApp(dataset, queue, reviewer, tmp_path / "labels", off_screen=True, **kw)
         apps.append(app)
         return app
     yield make
@@ -74,7 +79,7 @@ def test_triage_commit_writes_only_the_changes_and_new_cells(make_app, tmp_path)
     press(app, "t")
     assert app.mode == "triage"
     lines, frame = app.cell_state(app.queue[1])
-    assert "saved bad: back" in lines[0][0] and frame is not None  # the saved verdict is on the cell
+    assert "saved bad: back" in lines[0][0][0] and frame is not None  # the saved verdict is on the cell
     press(app, "Return")
     assert written(tmp_path) == [(S1, "bad", ("broken_back",)), (S0, "good", ()), (S2, "good", ())]
     assert app.log.verdict(S1).action == "bad"  # not overwritten by the commit
@@ -108,7 +113,7 @@ def test_pages_can_be_left_and_revisited_without_committing(make_app, tmp_path):
     press(app, "p")
     assert app.pending == {S0: ("bad", ("artifacts",))}  # the change waited on its page
     lines, frame = app.cell_state(app.queue[0])
-    assert "new > bad: artifacts" in lines[0][0] and frame[1] >= 4
+    assert "new > bad: artifacts" in lines[0][0][0] and frame[1] >= 4
     press(app, "Next Prior Return")         # PgDn / PgUp move too
     assert written(tmp_path)[1:] == [(S0, "bad", ("artifacts",)), (S1, "good", ())]
     assert app.triage_page == 1             # a commit moves on to the next page
@@ -170,6 +175,52 @@ def test_undo_names_the_subject_whose_verdict_it_cancels(make_app, tmp_path):
     assert app.notice == ("warn", "nothing to undo")
     press(app, "t Return z")                # in triage: the last committed cell
     assert written(tmp_path)[-1] == (S2, "undo", ()) and app.triage_cursor == 2
+
+
+def test_the_confirmation_follows_the_subject_it_speaks_of(make_app):
+    """A confirmation is shown with the view it was given on (the next subject after a verdict) and
+    goes when another subject or page is shown; the 3D view of the same subject keeps it."""
+    app = make_app()
+    press(app, "4")
+    assert app.pos == 1 and app.hud_lines[2][0] == f"saved: {S0} bad: blur"
+    press(app, "Right")
+    assert app.notice == ("saved", "") and app.hud_lines[2][0] == ""
+    press(app, "Left Left")
+    assert app.pos == 0 and app.hud_lines[2][0] == ""
+    press(app, "z")                          # the undo goes to subject 0, and says so there
+    assert app.pos == 0 and app.hud_lines[2][0].startswith(f"undone: {S0}")
+    press(app, "v")
+    assert app.mode == "3d" and app.hud_lines[2][0].startswith(f"undone: {S0}")
+    press(app, "v t Return")                 # a commit's line stays while the cursor moves on its page
+    press(app, "Left")
+    assert app.hud_lines[2][0].startswith("committed page 1")
+    press(app, "t")
+    assert app.hud_lines[2][0] == ""
+
+
+def test_u_with_nothing_left_to_review_says_so_and_stays(make_app, tmp_path):
+    app = make_app()
+    press(app, "g s")                        # on subject 2, the skipped 1 behind
+    press(app, "u")
+    assert app.pos == 1
+    press(app, "g g Left")                   # all three reviewed; on subject 1
+    press(app, "u")
+    assert app.pos == 1 and app.notice == ("warn", "all 3 subjects of this queue are reviewed: no unreviewed "
+                                                   "subject left")
+    press(app, "v u")                        # in the 3D view too: the head stays
+    assert (app.mode, app.pos) == ("3d", 1) and app._surface is not None and app.notice[0] == "warn"
+    assert len(written(tmp_path)) == 4
+
+
+def test_the_window_opens_with_what_the_log_held(make_app, tmp_path):
+    log = EventLog(tmp_path / "labels", "alice")
+    log.append(S0, "shard-000000", "good")
+    log.close()
+    with open(log.path, "ab") as f:
+        f.write(b'{"seq": 2, "subj')
+    app = make_app()
+    assert app.hud_lines[2] == (f"resumed: 1 verdict from {log.path} (1 of 3 in this queue reviewed); "
+                                "line 2: partial last line, dropped", NOTICE_COLORS["warn"])
 
 
 def test_triage_reason_keys_stay_on_the_cell_and_flips_use_the_preflag(make_app, tmp_path):
@@ -396,6 +447,26 @@ def test_3d_view_is_a_surface_framed_on_the_head(make_app):
     assert app.mode == "review" and app.pos == 1 and app._surface is None
 
 
+def test_3d_view_shows_the_stored_mesh_when_there_is_one(make_app, tmp_path_factory):
+    """A dataset made with --save-shape: v shows each subject's stored mesh, as stored, and says so;
+    without one the surface is built from the views, and says that."""
+    shaped = tmp_path_factory.mktemp("shaped") / "ds"
+    run_sample(tiny_spec(shaped, subjects=2, views=4, resolution=32, save_shape=32), progress=False)
+    fields = dict(iter_tar_samples(shaped / "shard-000000.tar"))[S0]
+    stored = decode_mesh(fields[SHAPE_FIELD], S0)
+    app = make_app(dataset=shaped, window_size=(640, 480))
+    press(app, "v")
+    shown = app._surface.GetMapper().GetInput()
+    assert app.mode == "3d" and shown.GetNumberOfPoints() == len(stored.vertices)
+    assert shown.GetNumberOfPolys() == len(stored.faces)
+    assert np.allclose(pyvista.wrap(shown).points, stored.vertices)
+    assert app.hud_lines[0][0].endswith(f"3D view: the stored mesh ({SHAPE_FIELD}, {len(stored.vertices):,} "
+                                        "vertices)")
+    plain = make_app(reviewer="bob", window_size=(640, 480))
+    press(plain, "v")
+    assert plain.hud_lines[0][0].endswith("3D view: built from the views' depth and masks (no stored mesh)")
+
+
 def test_verdicts_and_undo_typed_in_the_3d_view(make_app, tmp_path):
     """A verdict in 3D is saved and the next subject's views come (on the last subject the 3D view
     stays); z with nothing to undo leaves the head on screen, with the notice; an undo goes to the
@@ -561,98 +632,179 @@ def grab(display: str, path: Path) -> np.ndarray:
     return np.asarray(Image.open(path).convert("RGB")).astype(int)
 
 
-def test_real_window_session_typed_with_xdotool(xvfb, two_page_dataset, tmp_path):
-    if not shutil.which("import"):
-        pytest.skip("ImageMagick's import is needed to read the screen")
-    env = dict(os.environ, DISPLAY=xvfb, PYTHONPATH=str(ROOT))
-    labels = tmp_path / "labels"
-    log = labels / "zoe.jsonl"
-    proc = subprocess.Popen([sys.executable, "-m", "labeling_tool.cli", "review", str(two_page_dataset),
-                             "--reviewer", "zoe", "--labels", str(labels), "--window-size", "1000x600"], env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    shots = iter(range(1000))
+class RealWindow:
+    """``label-tool review`` in a real window on an Xvfb display (run in ``tmp_path``, so that a
+    relative --labels is as a person types it), typed with xdotool, its screen read with import."""
 
-    def xdo(*args):
-        return subprocess.run(["xdotool", *args], env=env, capture_output=True, text=True, timeout=60).stdout
-
-    def events():
-        return [json.loads(x) for x in log.read_text().splitlines()] if log.exists() else []
-
-    def screen():
-        return grab(xvfb, tmp_path / f"shot{next(shots)}.png")
-
-    def key(k, expect):
-        xdo("key", "--window", window, k)
+    def __init__(self, display: str, tmp_path: Path, dataset, reviewer: str, labels: str, size: str):
+        self.display, self.tmp_path, self.log = display, tmp_path, tmp_path / labels / f"{reviewer}.jsonl"
+        self.env = dict(os.environ, DISPLAY=display, PYTHONPATH=str(ROOT))
+        self.shots = iter(range(1000))
+        self.proc = subprocess.Popen([sys.executable, "-m", "labeling_tool.cli", "review", str(dataset),
+                                      "--reviewer", reviewer, "--labels", labels, "--window-size", size],
+                                     env=self.env, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                     text=True)
+        deadline, window = time.time() + 90, ""
+        while not window and self.proc.poll() is None and time.time() < deadline:
+            window = self.xdo("search", "--name", f"label-tool review: {reviewer}").strip()
+            time.sleep(0.2)
+        assert window, f"no window: {self.proc.poll()} {self.proc.stderr.read() if self.proc.poll() is not None else ''}"
+        self.window = window.split()[0]
+        self.xdo("windowfocus", "--sync", self.window)
         deadline = time.time() + 60
-        while len(events()) < expect and time.time() < deadline:
-            time.sleep(0.05)
-        assert len(events()) == expect, f"after {k}: {events()}"
+        while self.screen().std() < 20 and time.time() < deadline:   # the first frame: views and text
+            time.sleep(0.2)
 
-    def settled():
-        """The screen once two grabs in a row agree."""
-        last = screen()
+    def xdo(self, *args) -> str:
+        return subprocess.run(["xdotool", *args], env=self.env, capture_output=True, text=True, timeout=60).stdout
+
+    def events(self) -> list:
+        return read_log(self.log)[0] if self.log.exists() else []
+
+    def screen(self, name: str | None = None) -> np.ndarray:
+        return grab(self.display, self.tmp_path / f"{name or f'shot{next(self.shots)}'}.png")
+
+    def key(self, k: str, expect: int):
+        """Type ``k`` and wait until the log holds ``expect`` events."""
+        self.xdo("key", "--window", self.window, k)
+        deadline = time.time() + 60
+        while len(self.events()) < expect and time.time() < deadline:
+            time.sleep(0.05)
+        assert len(self.events()) == expect, f"after {k}: {self.events()}"
+
+    def settled(self, name: str | None = None) -> np.ndarray:
+        """The screen once two grabs in a row agree (saved as ``name``.png when named)."""
+        last = self.screen()
         for _ in range(50):
             time.sleep(0.1)
-            now = screen()
+            now = self.screen()
             if np.array_equal(now, last):
-                return now
+                break
             last = now
-        return last
+        return self.screen(name) if name else last
 
-    def key_changes_screen(k, before, least):
+    def key_changes_screen(self, k: str, before: np.ndarray, least: float, name: str | None = None) -> np.ndarray:
         """Type ``k``, wait for the screen to change (a share ``least`` of its pixels) and settle; the new screen."""
-        xdo("key", "--window", window, k)
+        self.xdo("key", "--window", self.window, k)
         deadline = time.time() + 60
         while time.time() < deadline:
             time.sleep(0.1)
-            if (np.abs(screen() - before).sum(-1) > 30).mean() > least:
-                return settled()
+            if (np.abs(self.screen() - before).sum(-1) > 30).mean() > least:
+                return self.settled(name)
         raise AssertionError(f"the screen did not change after {k}")
 
-    try:
-        deadline, window = time.time() + 90, ""
-        while not window and proc.poll() is None and time.time() < deadline:
-            window = xdo("search", "--name", "label-tool review: zoe").strip()
-            time.sleep(0.2)
-        assert window, f"no window: {proc.poll()} {proc.stderr.read() if proc.poll() is not None else ''}"
-        window = window.split()[0]
-        xdo("windowfocus", "--sync", window)
-        deadline = time.time() + 60
-        while screen().std() < 20 and time.time() < deadline:   # the first frame: views and text
-            time.sleep(0.2)
-        grid = settled()
-        assert grid.std() > 20                  # not a blank window
-        key("4", 1)                             # 0 bad (blur)
-        key("g", 2)                             # 1 good
-        key("z", 3)                             # undo names subject 1
-        key("5", 4)                             # 1 bad (other)
-        grid = settled()
-        surface = key_changes_screen("v", grid, least=0.04)     # 3D on: the grid of views gives way to a head
-        middle = surface[150:500, 350:650]      # the window is at the screen's top left, 1000x600
-        assert (np.abs(middle - BACKGROUND).sum(-1) > 40).mean() > 0.2   # the head, in the middle
-        views = key_changes_screen("v", surface, least=0.04)    # and back to the views
-        assert np.abs(views - grid).sum(-1).mean() < 5          # as they were (the notice line aside)
-        triage = key_changes_screen("t", views, least=0.1)
-        flipped = key_changes_screen("space", triage, least=0.0005)   # cell 2 (no verdict) flips to bad: framed red
-        red = (flipped[..., 0] > 200) & (flipped[..., 1] < 90) & (flipped[..., 2] < 90)
-        assert red.sum() > 3 * (red & (triage[..., 0] > 200)).sum() and red.sum() > 200
-        key("Return", 4 + 38)                   # page 1: 2 bad (artifacts), 37 more good, 0 and 1 kept; page 2 shown
-        page2 = settled()
-        assert (np.abs(page2 - flipped).sum(-1) > 30).mean() > 0.1   # 5 subjects on the second page, not 40
-        page1 = key_changes_screen("p", page2, least=0.1)      # a triage page change: back to page 1 ...
-        assert (np.abs(page1 - flipped).sum(-1) > 30).mean() < 0.05  # ... as it was, the flipped cell included
-        key_changes_screen("n", page1, least=0.1)
-        key("Escape", 42)
-        out, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == 0 and "Traceback" not in err, err
+    def finish(self) -> tuple[str, str]:
+        """(stdout, stderr) once the window has closed with exit status 0 and no traceback."""
+        out, err = self.proc.communicate(timeout=60)
+        assert self.proc.returncode == 0 and "Traceback" not in err, err
+        return out, err
+
+
+@pytest.fixture
+def real_window(xvfb, tmp_path):
+    if not shutil.which("import"):
+        pytest.skip("ImageMagick's import is needed to read the screen")
+    opened = []
+
+    def start(dataset, reviewer, labels="labels", size="1000x600"):
+        opened.append(RealWindow(xvfb, tmp_path, dataset, reviewer, labels, size))
+        return opened[-1]
+    yield start
+    for w in opened:
+        if w.proc.poll() is None:
+            w.proc.kill()
+            w.proc.wait()
+
+
+def test_real_window_session_typed_with_xdotool(real_window, two_page_dataset, tmp_path):
+    win = real_window(two_page_dataset, "zoe")
+    grid = win.settled()
+    assert grid.std() > 20                  # not a blank window
+    win.key("4", 1)                         # 0 bad (blur)
+    win.key("g", 2)                         # 1 good
+    win.key("z", 3)                         # undo names subject 1
+    win.key("5", 4)                         # 1 bad (other)
+    grid = win.settled()
+    surface = win.key_changes_screen("v", grid, least=0.04)   # 3D on: the grid of views gives way to a head
+    middle = surface[150:500, 350:650]      # the window is at the screen's top left, 1000x600
+    assert (np.abs(middle - BACKGROUND).sum(-1) > 40).mean() > 0.2   # the head, in the middle
+    views = win.key_changes_screen("v", surface, least=0.04)  # and back to the views
+    assert np.abs(views - grid).sum(-1).mean() < 5            # as they were (the notice line aside)
+    triage = win.key_changes_screen("t", views, least=0.1)
+    flipped = win.key_changes_screen("space", triage, least=0.0005)   # cell 2 (no verdict) flips to bad: framed red
+    red = (flipped[..., 0] > 200) & (flipped[..., 1] < 90) & (flipped[..., 2] < 90)
+    assert red.sum() > 3 * (red & (triage[..., 0] > 200)).sum() and red.sum() > 200
+    win.key("Return", 4 + 38)               # page 1: 2 bad (artifacts), 37 more good, 0 and 1 kept; page 2 shown
+    page2 = win.settled()
+    assert (np.abs(page2 - flipped).sum(-1) > 30).mean() > 0.1   # 5 subjects on the second page, not 40
+    page1 = win.key_changes_screen("p", page2, least=0.1)       # a triage page change: back to page 1 ...
+    assert (np.abs(page1 - flipped).sum(-1) > 30).mean() < 0.05  # ... as it was, the flipped cell included
+    win.key_changes_screen("n", page1, least=0.1)
+    win.key("Escape", 42)
+    out, _ = win.finish()
     assert "zoe: 40/45 reviewed" in out
-    got = [(e["subject"], e["action"], e["reasons"]) for e in events()]
-    assert got[:5] == [(S0, "bad", ["blur"]), (S1, "good", []), (S1, "undo", []), (S1, "bad", ["other"]),
-                       (S2, "bad", ["artifacts"])]
-    assert got[5:] == [(subject_id(i), "good", []) for i in range(3, 40)]
-    m = compile_manifest(two_page_dataset, labels)
+    got = [(e.subject, e.action, e.reasons) for e in win.events()]
+    assert got[:5] == [(S0, "bad", ("blur",)), (S1, "good", ()), (S1, "undo", ()), (S1, "bad", ("other",)),
+                       (S2, "bad", ("artifacts",))]
+    assert got[5:] == [(subject_id(i), "good", ()) for i in range(3, 40)]
+    m = compile_manifest(two_page_dataset, tmp_path / "labels")
     verdicts = {r["subject"]: r["verdict"] for r in m["subjects"]}
     assert [verdicts[s] for s in (S0, S1, S2)] == ["rejected"] * 3 and m["header"]["counts"]["unreviewed"] == 5
+
+
+def hud_line(shot: np.ndarray, k: int, window_height: int, window_width: int) -> np.ndarray:
+    """Line ``k`` of the heads-up block (0 status, 1 detail, 2 notice, 3 keys) of a window at the screen's top left."""
+    size = text_size(window_height)
+    y = 5 + k * (size + 6)
+    return shot[y:y + size + 6, 8:window_width - 8]
+
+
+def test_real_window_says_what_the_log_recovered_and_what_u_finds(real_window, two_page_dataset, tmp_path):
+    """Reopened after a crash cut its last line, the window says what it resumed from and names the
+    cut line; u with every subject reviewed says so and stays; the notice goes when another subject
+    is shown; triage cells at 1000x650 keep their verdicts in text."""
+    log = EventLog(tmp_path / "labels", "yan")
+    reasons = ["multiple_faces", "broken_back", "blur"]
+    for i in range(44):
+        log.append(subject_id(i), "shard-000000", *(("bad", (reasons[i % 3],)) if i % 5 == 3 else ("good",)))
+    log.append(subject_id(44), "shard-000000", "skip")
+    log.close()
+    with open(log.path, "ab") as f:
+        f.write(b'{"action": "good", "reasons": [], "reviewer": "y')   # a write a crash cut short
+    W, H = 1000, 650
+    win = real_window(two_page_dataset, "yan", size=f"{W}x{H}")
+    size = text_size(H)
+
+    def notice_reads(shot, message, kind):
+        want = np.asarray(text_line(message, NOTICE_COLORS[kind], size, W - 16)).astype(int)
+        return np.abs(hud_line(shot, 2, H, W) - want).mean() < 1
+
+    opened = win.settled("review_restart_after_cut_line")
+    assert notice_reads(opened, "resumed: 45 verdicts from labels/yan.jsonl (44 of 45 in this queue reviewed); "
+                                "line 46: partial last line, dropped", "warn")
+    win.key("g", 46)                        # the skipped subject, the last one left, good: all reviewed
+    saved = win.settled()
+    nothing_left = win.key_changes_screen("u", saved, least=0.0003, name="review_u_nothing_left")
+    assert notice_reads(nothing_left, "all 45 subjects of this queue are reviewed: no unreviewed subject left",
+                        "warn")
+    assert np.array_equal(hud_line(nothing_left, 0, H, W), hud_line(saved, 0, H, W))   # still on the last subject
+    assert np.array_equal(nothing_left[hud_height(H):H, :W], saved[hud_height(H):H, :W])
+    assert len(win.events()) == 46
+    previous = win.key_changes_screen("Left", nothing_left, least=0.01)
+    assert (np.abs(hud_line(previous, 2, H, W) - BACKGROUND).sum(-1) == 0).all()   # the notice spoke of 44
+    page2 = win.key_changes_screen("t", previous, least=0.01)
+    page1 = win.key_changes_screen("p", page2, least=0.1)
+    flipped = win.key_changes_screen("space", page1, least=0.0003, name="review_triage_1000x650")
+    layout = Layout.fit(W, H, 40, 8, 2)
+    for i, text, color in ((0, "subj00000000  good", "good"), (3, "~0003 bad>good", "good"),
+                           (8, "subj00000008  bad", "bad")):
+        sx, _ = layout.slot(i)
+        x0, y0, x1, y1 = layout.image_box(i)
+        box = (slice(y1 + 6, y1 + 6 + layout.label_font), slice(sx + 4, sx + layout.slot_w - 5))   # no frame, no cursor
+        want = Image.new("RGB", (W, H), BACKGROUND)
+        ImageDraw.Draw(want).text((sx + 6, y1 + 4), text, fill=COLORS[color], font=font(layout.label_font))
+        assert np.abs(flipped[box] - np.asarray(want).astype(int)[box]).mean() < 1, f"cell {i}: {text}"
+    win.key_changes_screen("Escape", flipped, least=0.0003)   # a change not committed: a second Escape quits
+    win.xdo("key", "--window", win.window, "Escape")
+    _, err = win.finish()
+    assert f"note: {Path('labels') / 'yan.jsonl'}:46: partial last line, dropped" in err

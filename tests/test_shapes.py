@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 import json
+import struct
 
 import numpy as np
 import plyfile
@@ -20,7 +21,7 @@ from scipy.spatial import cKDTree
 
 from datagen.cameras import depth_points
 from datagen.cli import main
-from datagen.errors import UserError
+from datagen.errors import DatasetError, UserError
 from datagen.gans.checkpoint import read_checkpoint
 from datagen.gans.kinds import KINDS
 from datagen.generators import gan as gan_module
@@ -33,7 +34,7 @@ from datagen.shapes import (
     extract_shape,
     stored_shape,
 )
-from datagen.shards import SHAPE_FIELD, read_subject
+from datagen.shards import SHAPE_FIELD, read_subject, tar_path
 from tests.conftest import gan_fixture, tiny_spec
 from tests.simdev import on_device, simulated_device
 
@@ -265,6 +266,51 @@ def test_shape_command_writes_every_format(shaped, tmp_path, capsys, suffix):
         ply = plyfile.PlyData.read(str(out))
         assert ply["vertex"].count == record["vertices"] and ply["face"].count == record["faces"]
         assert {"red", "green", "blue"} <= {p.name for p in ply["vertex"].properties}
+
+
+def damage_face_index(ds, key, shard, index):
+    """Overwrite the first face's first vertex index of ``key``'s stored PLY, in place in its shard."""
+    data, record = stored_shape(ds, key)
+    tar = tar_path(ds, shard)
+    raw = bytearray(tar.read_bytes())
+    header = data.index(b"end_header\n") + len(b"end_header\n")
+    # float32 x y z + uchar r g b a per vertex; then per face a uchar count and 3 int32 indices
+    at = raw.index(data) + header + record["vertices"] * 16 + 1
+    raw[at:at + 4] = struct.pack("<i", index)
+    tar.write_bytes(bytes(raw))
+    return record
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".obj", ".glb"])
+def test_shape_command_refuses_a_damaged_stored_mesh(shaped, tmp_path, capsys, suffix):
+    """A face index far past the vertex count is refused in every format, the stored PLY copy too."""
+    from tests.test_dataset import copy_dataset
+
+    ds = copy_dataset(shaped, tmp_path / "ds")
+    record = damage_face_index(ds, "subj00000001", 1, 4_200_280)
+    out = tmp_path / f"head{suffix}"
+    code, _, err = run(["shape", str(ds), "--subject", "1", "--out", str(out)], capsys)
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and not out.exists(), err
+    assert f"{ds}: subj00000001: " in lines[0] and f"vertex 4,200,280 of {record['vertices']:,}" in lines[0]
+    code, _, _ = run(["shape", str(ds), "--subject", "0", "--out", str(out)], capsys)
+    assert code == 0 and out.exists()  # the other subject's mesh is intact
+
+
+def test_decode_mesh_refuses_what_no_format_can_carry():
+    mesh = Mesh(vertices=np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0]], np.float32), faces=np.array([[0, 1, 2]]),
+                colors=np.full((3, 3), 200, np.uint8), record={})
+    assert len(decode_mesh(encode_mesh(mesh), "s").faces) == 1
+    negative = copy.deepcopy(mesh)
+    negative.faces[0, 2] = -1
+    with pytest.raises(DatasetError, match="index vertex -1 of 3"):
+        decode_mesh(encode_mesh(negative), "s")
+    nan = copy.deepcopy(mesh)
+    nan.vertices[1, 0] = np.nan
+    with pytest.raises(DatasetError, match="NaN or Inf vertices"):
+        decode_mesh(encode_mesh(nan), "s")
+    with pytest.raises(DatasetError, match="does not decode.*unexpected length"):
+        decode_mesh(encode_mesh(mesh) + b"\0" * 13, "s")  # one face more than its header says
 
 
 def test_shape_command_extracts_what_is_not_stored(tiny_dataset, tmp_path, capsys):

@@ -10,21 +10,21 @@ import functools
 from importlib.util import find_spec
 from pathlib import Path
 
+from ..errors import NotInstalled, missing_extra, optional_import
+
+FACES = "face detection (dlib)"
+
 
 def load_dlib():
-    """The dlib module; ImportError (one line, with the pip command) without it."""
-    try:
-        import dlib
-    except ImportError:
-        raise ImportError("datagen.faces needs dlib: pip install dlib-bin (prebuilt wheels of dlib)") from None
-    return dlib
+    """The dlib module; NotInstalled (an ImportError naming the 'faces' extra) without it."""
+    return optional_import("dlib", "faces", FACES)
 
 
 def models_dir() -> Path:
     """Folder of dlib's model files from the face-recognition-models package."""
     spec = find_spec("face_recognition_models")  # not imported: its __init__ needs pkg_resources
     if spec is None or not spec.submodule_search_locations:
-        raise ImportError("dlib's face models are missing: pip install face-recognition-models")
+        raise missing_extra("faces", FACES, "no module named 'face_recognition_models'")
     return Path(next(iter(spec.submodule_search_locations))) / "models"
 
 
@@ -32,12 +32,13 @@ def model_file(name: str) -> str:
     """Path of one of dlib's model files; ImportError when it is missing."""
     path = models_dir() / name
     if not path.is_file():
-        raise ImportError(f"{path} is missing: pip install --force-reinstall face-recognition-models")
+        raise NotInstalled(f"{path} is missing: pip install --force-reinstall face-recognition-models")
     return str(path)
 
 
 def check_dlib() -> None:
-    """Raise ImportError (one line, with the pip command) unless dlib and its model files are installed."""
+    """Raise NotInstalled (an ImportError, one line with the pip command) unless dlib and its model files are
+    installed."""
     load_dlib()
     for name in ("mmod_human_face_detector.dat", "shape_predictor_5_face_landmarks.dat",
                  "shape_predictor_68_face_landmarks.dat", "dlib_face_recognition_resnet_model_v1.dat"):

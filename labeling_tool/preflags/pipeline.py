@@ -17,6 +17,7 @@ import numpy as np
 from datagen.errors import DatasetError
 from datagen.preflags import FORMAT
 from datagen.shards import check_shards, index_sha256, read_index, read_sidecar, shard_index, tar_path
+from datagen.threads import choose, use
 
 from .detector import (FALSE_ALARM_RATE, FLAG_AT, MIN_SUBJECTS, NULL_QUANTILES, NULL_ROUNDS, calibrated_cuts,
                        evidence, recalibrated)
@@ -85,17 +86,18 @@ def _pool_context():
 
 
 def extract(root, workers: int = 1, progress: bool = False, detectors=DETECTORS,
-            skip_incomplete: bool = False, shards=None) -> dict:
+            skip_incomplete: bool = False, shards=None, threads: int | None = None) -> dict:
     """First pass: {"index_sha256", "records": [(shard, record), ...] in index order, "skipped_shards",
     "seconds"} for the shards numbered ``shards`` (default all). With ``workers`` > 1 the workers are
     fresh processes (see ``_pool_context``), which import the calling script as a module: scripts
-    guard their entry point (``if __name__ == "__main__":``)."""
+    guard their entry point (``if __name__ == "__main__":``). Each worker runs ``choose(workers, threads)``
+    torch threads (:mod:`datagen.threads`)."""
     t0 = time.perf_counter()
     tasks, skipped = plan(root, skip_incomplete, shards)
     tasks = [t + (detectors,) for t in tasks]
     bar = _bar(len(tasks)) if progress else None
     if workers > 1 and len(tasks) > 1:
-        with _pool_context().Pool(workers) as pool:
+        with _pool_context().Pool(workers, initializer=use, initargs=(choose(workers, threads),)) as pool:
             records = []
             for r in pool.imap(_measure, tasks, chunksize=4):
                 records.append(r)
@@ -188,14 +190,15 @@ def score(extracted: dict, detectors=DETECTORS, false_alarm_rate: float | None =
 
 
 def score_dataset(root, progress: bool = False, workers: int = 1, detectors=DETECTORS,
-                  skip_incomplete: bool = False, labels=None, false_alarm_rate: float | None = FALSE_ALARM_RATE) -> dict:
+                  skip_incomplete: bool = False, labels=None, false_alarm_rate: float | None = FALSE_ALARM_RATE,
+                  threads: int | None = None) -> dict:
     """Score every subject of the dataset at ``root``; returns the report (subjects sorted worst first).
 
     ``labels``: a folder of reviewers' event logs; the queue's ``rank`` then learns from their
     verdicts (``learn.py``). ``false_alarm_rate``: as in :func:`score`.
     """
     t0 = time.perf_counter()
-    extracted = extract(root, max(1, int(workers)), progress, detectors, skip_incomplete)
+    extracted = extract(root, max(1, int(workers)), progress, detectors, skip_incomplete, threads=threads)
     return finish(extracted, t0, {"workers": max(1, int(workers))}, detectors, labels, false_alarm_rate)
 
 

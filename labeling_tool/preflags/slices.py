@@ -181,9 +181,10 @@ def read_slices(root, out=None, detectors=DETECTORS) -> dict:
 
 
 def measure_slice(root, k: int, n: int, out=None, workers: int = 1, progress: bool = False,
-                  detectors=DETECTORS, skip_incomplete: bool = False) -> tuple[Path, dict]:
+                  detectors=DETECTORS, skip_incomplete: bool = False, threads: int | None = None) -> tuple[Path, dict]:
     """Measure slice ``k`` of ``n`` and write it; returns (its path, the extract)."""
-    extracted = extract(root, workers, progress, detectors, skip_incomplete, shards=slice_shards(root, k, n))
+    extracted = extract(root, workers, progress, detectors, skip_incomplete, shards=slice_shards(root, k, n),
+                        threads=threads)
     return write_slice(root, k, n, extracted, out, detectors), extracted
 
 

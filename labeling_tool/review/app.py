@@ -88,6 +88,20 @@ class ReviewApp:
         else:
             self.show_subject()
 
+    # -- the notice line -------------------------------------------------------------------------------
+    @property
+    def notice(self) -> tuple[str, str]:
+        """The confirmation of the last action (kind, message), or an empty line."""
+        return self._notice
+
+    @notice.setter
+    def notice(self, value: tuple[str, str]):
+        self._notice, self._notice_on = value, None   # it belongs to the view it is first drawn on
+
+    def _shown(self):
+        """What is on screen, for the notice: the subject (review and 3D) or the triage page."""
+        return ("page", self.triage_page) if self.mode == "triage" else ("subject", self.pos)
+
     # -- actors ---------------------------------------------------------------------------------------
     def _make_actors(self):
         """Three 2D images (the grid, the heads-up block, the help panel) and the triage cursor."""
@@ -99,6 +113,7 @@ class ReviewApp:
         self._help_size = None
         self._hud_key = self._hud_pixels = None
         self._surface = None
+        self._surface_source = None
 
     def window_size(self) -> tuple[int, int]:
         return self.window.size()
@@ -114,6 +129,11 @@ class ReviewApp:
     def _draw_text(self, status: str, detail: str, keys: str):
         """The heads-up block (status, detail, the last action's confirmation, the keys) and the help panel."""
         w, h = self.window_size()
+        shown = self._shown()
+        if self._notice_on != shown:
+            if self._notice_on is not None:  # it spoke of a subject (or page) no longer on screen
+                self._notice = ("saved", "")
+            self._notice_on = shown
         kind, message = self.notice
         self.hud_lines = [(status, COLORS["text"]), (detail, COLORS["dim"]), (message, NOTICE_COLORS[kind]),
                           (keys, (150, 150, 150))]
@@ -271,8 +291,14 @@ class ReviewApp:
         self.goto(max(self.pos - 1, 0))
 
     def next_unreviewed(self):
-        if self.mode != "triage":
-            self.goto(self.session.first_unreviewed(self.pos + 1))
+        if self.mode == "triage":
+            return
+        notice = self.session.next_unreviewed()
+        if notice is None:
+            self.goto(self.pos)
+        else:
+            self.notice = notice     # none other: the subject (or its 3D view) stays, with the notice
+            self.refresh()
 
     def goto(self, pos: int):
         self.session.pos = pos
@@ -304,7 +330,7 @@ class ReviewApp:
 
     def status_text(self) -> tuple[str, str]:
         """The heads-up block's first two lines in review and 3D mode."""
-        return self.session.status_lines(view3d=self.mode == "3d")
+        return self.session.status_lines(view3d=self._surface_source if self.mode == "3d" else None)
 
     def _on_resize(self) -> bool:
         """Lay the window out again when its size changed; True when it did (and was drawn)."""
@@ -332,7 +358,7 @@ class ReviewApp:
             self.refresh()
             return
         item = self.session.item
-        arrays = self.frames.get(("surface", item.subject), lambda: self._surface_of(item, frame))
+        arrays, source = self.frames.get(("surface", item.subject), lambda: self._surface_of(item, frame))
         if arrays is None:
             self.notice = ("warn", f"{item.subject}: no view has a depth inside its mask; nothing to show in 3D")
             self.refresh()
@@ -341,6 +367,7 @@ class ReviewApp:
         self._grid.hide()
         self._surface = surface_actor(self.window.plotter, mesh)
         self._surface_bounds = mesh.bounds
+        self._surface_source = source
         self.window.set_style("3d")
         self.mode = "3d"
         self.reframe_3d()

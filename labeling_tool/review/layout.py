@@ -145,10 +145,13 @@ def draw_cell(canvas: Image.Image, layout: Layout, i: int, img: np.ndarray | Non
                   font=f)
 
 
-def fit_text(text: str, f, room: float) -> str:
-    """``text`` cut (ending in '~') to fit ``room`` pixels in font ``f``."""
-    if f.getlength(text) <= room:
-        return text
+def fit_text(text, f, room: float) -> str:
+    """``text`` cut (ending in '~') to fit ``room`` pixels in font ``f``; ``text`` may be a tuple of
+    forms, longest first: the first that fits, or the last cut."""
+    for form in (text,) if isinstance(text, str) else text:
+        if f.getlength(form) <= room:
+            return form
+    text = form
     lo, hi = 0, len(text)  # the longest prefix that fits with its '~' (a binary search: few measurements)
     while lo < hi:
         mid = (lo + hi + 1) // 2
@@ -314,19 +317,39 @@ def cell_drawing(session, item, error: str | None):
     return lines, frame
 
 
+def verdict_forms(verdict) -> tuple[str, str, str]:
+    """A verdict ((action, reasons) or None: none yet) written long, as a word, as a letter."""
+    if verdict is None:
+        return "new", "new", "-"
+    action, reasons = verdict
+    return verdict_text(action, reasons), action, action[0].upper()
+
+
+def cell_label(subject: str, forms) -> tuple:
+    """A triage cell's first line in its forms, longest first (see :func:`fit_text`): the subject and
+    its verdict's ``forms`` (longest first, the last a letter). As room runs out the verdict gets
+    shorter, then the subject gives way to its last 4 characters, then goes: the verdict stays in text."""
+    tail = "~" + subject[-4:]
+    candidates = [f"{subject}  {v}" for v in forms[:-1]] + [f"{tail} {v}" for v in forms[-2:]] + list(forms[-2:])
+    return tuple(dict.fromkeys(candidates))
+
+
 def cell_state(session, item):
-    """(lines of text, frame) of a triage cell: saved verdict, change not committed, pre-flags."""
+    """(lines of text, frame) of a triage cell: saved verdict, change not committed, pre-flags. The
+    first line is a tuple of forms, longest first (see :func:`cell_label`)."""
     saved = session.log.verdict(item.subject)
     change = session.pending.get(item.subject)
-    saved_text = verdict_text(saved.action, saved.reasons) if saved else "new"
+    was = verdict_forms((saved.action, saved.reasons) if saved else None)
     if change:
-        top = (f"{item.subject}  {saved_text} > {verdict_text(*change)}", COLORS[change[0]])
+        now = verdict_forms(change)
+        top = (cell_label(item.subject, [f"{was[0]} > {now[0]}", f"{was[1]}>{now[1]}", f"{was[2]}>{now[2]}"]),
+               COLORS[change[0]])
         frame = (COLORS[change[0]], 5)
     elif saved:
-        top = (f"{item.subject}  saved {saved_text}", COLORS[saved.action])
+        top = (cell_label(item.subject, [f"saved {was[0]}", *was]), COLORS[saved.action])
         frame = (tuple(c * 2 // 3 for c in COLORS[saved.action]), 2)
     else:
-        top = (f"{item.subject}  new", COLORS["text"])
+        top = (cell_label(item.subject, was), COLORS["text"])
         frame = None
     bottom = (f"{item.flags_text() or 'no flag'}  flip={REASON_SHORT[item.default_reason]}", COLORS["dim"])
     return [top, bottom], frame

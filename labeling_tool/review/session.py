@@ -76,7 +76,21 @@ class ReviewSession:
         return self.queue[self.pos]
 
     def resume_notice(self) -> tuple[str, str]:
-        return "saved", f"{self.done} of {len(self.queue)} reviewed so far; log {self.log.path}"
+        """What the log held when the session opened: the verdicts it resumes from, and the log's
+        problems (the first one, and how many more; every one is printed on the terminal)."""
+        log, n = self.log, len(self.queue)
+        if log.events:
+            k = len(log.verdicts())
+            text = f"resumed: {k} verdict{'s' * (k != 1)} from {log.path} ({self.done} of {n} in this queue reviewed)"
+        else:
+            text = f"new log {log.path}: {self.done} of {n} reviewed"
+        if not log.problems:
+            return "saved", text
+        first = log.problems[0].removeprefix(f"{log.path}:")
+        first = f"line {first}" if first[:1].isdigit() else first.strip()
+        more = len(log.problems) - 1
+        return "warn", (f"{text}; {first}"
+                        + (f"; {more} more log problem{'s' * (more > 1)} (listed on the terminal)" if more else ""))
 
     def first_unreviewed(self, start: int = 0) -> int:
         """The first subject from ``start`` on (wrapping around) that is not reviewed: no verdict, or skip."""
@@ -86,6 +100,17 @@ class ReviewSession:
             if not is_decision(seen.get(self.queue[i].subject)):
                 return i
         return min(start, len(self.queue) - 1)
+
+    def next_unreviewed(self) -> tuple[str, str] | None:
+        """Go to the next subject not reviewed (wrapping around); when there is no other, stay and
+        return the notice that says so."""
+        i = self.first_unreviewed(self.pos + 1)
+        if is_decision(self.log.verdict(self.queue[i].subject)):
+            return "warn", f"all {len(self.queue)} subjects of this queue are reviewed: no unreviewed subject left"
+        if i == self.pos:
+            return "warn", f"{self.item.subject} (shown) is the only unreviewed subject left"
+        self.pos = i
+        return None
 
     def _count(self, subject: str, before) -> None:
         """Keep the reviewed and skipped counts up to date after ``subject``'s verdict changed from ``before``."""
@@ -132,12 +157,13 @@ class ReviewSession:
             return ("undo", notice[1] + " (not in this queue)"), None
         return notice, self.index[target.subject]
 
-    def status_lines(self, view3d: bool = False) -> tuple[str, str]:
-        """The heads-up block's status and detail lines in review (and 3D) mode."""
+    def status_lines(self, view3d: str | None = None) -> tuple[str, str]:
+        """The heads-up block's status and detail lines in review mode, and in 3D (``view3d`` says
+        what the 3D view shows)."""
         it = self.item
         v = self.log.verdict(it.subject)
         pending = f"   ({len(self.pending)} triage change(s) not committed)" if self.pending else ""
-        view = "   3D view" if view3d else ""
+        view = f"   3D view: {view3d}" if view3d else ""
         skipped = f" ({self.skipped} skipped)" if self.skipped else ""
         status = (f"{it.subject} ({it.shard})   {self.pos + 1}/{len(self.queue)}   reviewed {self.done}, "
                   f"left {len(self.queue) - self.done}{skipped}{pending}{view}")

@@ -1,4 +1,5 @@
-"""The 3D surface of a subject: a triangle mesh from every view's depth and mask, coloured by the images."""
+"""The 3D surface of a subject: its stored mesh, or a triangle mesh from every view's depth and mask,
+coloured by the images."""
 from __future__ import annotations
 
 import numpy as np
@@ -6,7 +7,8 @@ import pyvista as pv
 
 from datagen.cameras import depth_points
 from datagen.errors import DatasetError
-from datagen.shards import decode_exr
+from datagen.shapes import checked_mesh
+from datagen.shards import SHAPE_FIELD, decode_exr
 
 from .reader import decode_image
 
@@ -87,11 +89,20 @@ def surface_actor(plotter: pv.Plotter, mesh: pv.PolyData) -> pv.Actor:
 
 
 def subject_surface(reader, item, meta: dict, rgb_views: list):
-    """:func:`surface_mesh` of a subject from its metadata, its views' images (any size) and the
-    masks and depths read here (also in the background)."""
+    """The subject's 3D surface, (arrays as :func:`surface_mesh` gives them, or None; what they are).
+    The mesh stored with the subject (``datagen sample --save-shape``), checked against its record,
+    when there is one: it is the head's own surface. Otherwise :func:`surface_mesh` from its
+    metadata, its views' images (any size) and the masks and depths read here. Also in the background."""
+    where = f"{item.shard}: {item.subject}"
+    record = meta.get("shape")
+    if record is not None:
+        mesh, problems = checked_mesh(reader.read(item, [SHAPE_FIELD])[SHAPE_FIELD], record, where)
+        if problems:
+            raise DatasetError(problems[0])
+        return ((mesh.vertices, mesh.faces, mesh.colors),
+                f"the stored mesh ({SHAPE_FIELD}, {len(mesh.vertices):,} vertices)")
     names = [v["name"] for v in meta["views"]]
     data = reader.read(item, [f"{n}.mask.png" for n in names] + [f"{n}.depth.exr" for n in names])
-    where = f"{item.shard}: {item.subject}"
     views = []
     for n, v, rgb in zip(names, meta["views"], rgb_views):
         try:
@@ -100,7 +111,7 @@ def subject_surface(reader, item, meta: dict, rgb_views: list):
             raise DatasetError(f"{where} {n}.depth.exr does not decode ({type(e).__name__}: {e})") from None
         views.append((np.array(v["cam2world"]), np.array(v["intrinsics"]), rgb,
                       decode_image(data[f"{n}.mask.png"], f"{where} {n}.mask.png"), depth))
-    return surface_mesh(views)
+    return surface_mesh(views), "built from the views' depth and masks (no stored mesh)"
 
 
 def frame_front(plotter: pv.Plotter, bounds) -> None:

@@ -1,0 +1,150 @@
+"""Thread settings on an idle and on a busy machine: each command with its default threads
+(:mod:`datagen.threads`), with one thread, and with every usable CPU (torch's own default, which every
+command used before), timed as a user runs it (a subprocess, start-up included).
+
+    python -m benchmarks.threads            # about 15 minutes on 2 cores
+    python -m benchmarks.threads --report-only
+
+Busy means one spinning process per usable CPU, started before the command and kept running: the
+cores are held by other work, as on a shared machine or a laptop running a build. The goal: the
+default never more than 1.3x slower than the best setting, idle or busy. Writes
+``benchmarks/reports/threads.{md,json}``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from benchmarks.common import HERE, REPORTS, machine_info, table, write_report
+from datagen.threads import usable_cpus
+
+OUT = HERE / "out" / "threads"
+GOAL = 1.3
+SPIN = "import time\nend = time.time() + {s}\nwhile time.time() < end: pass"
+
+
+def _exe(command: str) -> str:
+    return str(Path(sys.executable).parent / command)
+
+
+def prepare(out: Path) -> None:
+    """A small dataset, a manifest, a 2-step run and a photo for the timed commands (made once)."""
+    out.mkdir(parents=True, exist_ok=True)
+    steps = [
+        ("data", [_exe("datagen"), "sample", "--out", "data", "--subjects", "16", "--resolution", "128",
+                  "--defect-rate", "0", "--seed", "3", "--quiet"]),
+        ("manifest.json", [_exe("label-tool"), "compile", "data", "--labels", "labels", "--test-count", "4",
+                           "--out", "manifest.json"]),
+        ("run", [_exe("panolam"), "train", "--data", "data", "--manifest", "manifest.json", "--config", "tiny",
+                 "--steps", "2", "--out", "run", "--no-progress"]),
+    ]
+    (out / "labels").mkdir(exist_ok=True)
+    for made, argv in steps:
+        if not (out / made).exists():
+            subprocess.run(argv, cwd=out, check=True, stdout=subprocess.DEVNULL)
+    if not (out / "photo.png").exists():
+        from datagen.shards import decode_sample, read_fields
+        from PIL import Image
+        key = json.loads((out / "data" / "index.json").read_text())["shards"][0]["subjects"][0]
+        sample = decode_sample(key, read_fields(out / "data", 0, key), views=[0], depth=False)
+        Image.fromarray(sample.rgb[0]).resize((512, 512)).save(out / "photo.png")
+
+
+def commands(out: Path) -> dict[str, list[str]]:
+    """What is timed: each command a user runs on a CPU, sized to a few seconds to a minute."""
+    return {
+        "datagen sample (8 subjects, 128 px)": [_exe("datagen"), "sample", "--out", "timed-sample", "--subjects", "8",
+                                                "--resolution", "128", "--seed", "5", "--quiet"],
+        "datagen shape (1 subject, 96^3)": [_exe("datagen"), "shape", "data", "--subject", "0", "--out",
+                                            "timed-shape.ply", "--res", "96"],
+        "label-tool auto (16 subjects)": [_exe("label-tool"), "auto", "data", "--quiet"],
+        "panolam train (8 steps)": [_exe("panolam"), "train", "--data", "data", "--manifest", "manifest.json",
+                                    "--config", "tiny", "--steps", "8", "--out", "timed-run", "--no-progress"],
+        "panolam infer (1 photo, no crop)": [_exe("panolam"), "infer", "photo.png", "--ckpt", "run", "--no-crop",
+                                             "--out", "timed-head.ply", "--views", "timed-views"],
+        "panolam eval (4 subjects)": [_exe("panolam"), "eval", "--data", "data", "--manifest", "manifest.json",
+                                      "--ckpt", "run", "--out", "timed-eval", "--no-baselines"],
+    }
+
+
+def timed(argv: list[str], out: Path, threads: int | None) -> float:
+    """Seconds one command takes; ``threads``: OMP_NUM_THREADS for it (None: not set, the default)."""
+    for leftover in ("timed-sample", "timed-run", "timed-eval", "timed-views", "timed-head.ply", "timed-shape.ply",
+                     "data/preflags.json"):
+        path = out / leftover
+        shutil.rmtree(path) if path.is_dir() else path.unlink(missing_ok=True)
+    env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
+    if threads is not None:
+        env["OMP_NUM_THREADS"] = str(threads)
+    t0 = time.perf_counter()
+    subprocess.run(argv, cwd=out, env=env, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return time.perf_counter() - t0
+
+
+def measure(out: Path, repeats: int) -> dict:
+    prepare(out)
+    cpus = usable_cpus()
+    settings = {"default": None, "1 thread": 1, f"{cpus} threads (torch's default)": cpus}
+    results = {"machine": machine_info(), "usable_cpus": cpus, "repeats": repeats, "load": {}, "seconds": {}}
+    for condition in ("idle", "busy"):
+        spinners = [subprocess.Popen([sys.executable, "-c", SPIN.format(s=3600)]) for _ in range(cpus)] \
+            if condition == "busy" else []
+        try:
+            time.sleep(2 if spinners else 0)
+            results["load"][f"{condition} before"] = os.getloadavg()[0]
+            for name, argv in commands(out).items():
+                for label, threads in settings.items():
+                    runs = sorted(timed(argv, out, threads) for _ in range(repeats))
+                    results["seconds"].setdefault(condition, {}).setdefault(name, {})[label] = runs[len(runs) // 2]
+                    print(f"{condition:4s} {name:40s} {label:28s} {runs[len(runs) // 2]:7.1f} s", flush=True)
+            results["load"][f"{condition} after"] = os.getloadavg()[0]
+        finally:
+            for s in spinners:
+                s.kill()
+                s.wait()
+    return results
+
+
+def markdown(res: dict) -> str:
+    m = res["machine"]
+    lines = ["# Threads on an idle and a busy machine", "",
+             f"{m['cpu_model']}, {res['usable_cpus']} usable CPUs, torch {m['torch']}, revision {m['git_revision']}, "
+             f"{m['date']}. Median of {res['repeats']} run(s) of each command as a subprocess (start-up included). "
+             f"Busy: {res['usable_cpus']} spinning processes held every CPU. 1-minute load average: "
+             + ", ".join(f"{k} {v:.2f}" for k, v in res["load"].items()) + ".", ""]
+    worst = 0.0
+    for condition, by_command in res["seconds"].items():
+        labels = list(next(iter(by_command.values())))
+        rows = []
+        for name, secs in by_command.items():
+            best = min(secs.values())
+            ratio = secs["default"] / best
+            worst = max(worst, ratio)
+            rows.append([name, *(f"{secs[k]:.1f}" for k in labels), f"{ratio:.2f}x"])
+        lines += [f"## {condition.capitalize()}", ""] + table(
+            ["command", *(f"{k}, s" for k in labels), "default / best"], rows) + [""]
+    lines += [f"Worst default against the best setting: **{worst:.2f}x** (goal at most {GOAL}x: "
+              f"{'met' if worst <= GOAL else 'missed'})."]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", type=Path, default=OUT, help="work folder")
+    parser.add_argument("--repeats", type=int, default=1)
+    parser.add_argument("--report-only", action="store_true")
+    args = parser.parse_args(argv)
+    stem = REPORTS / "threads"
+    res = json.loads(stem.with_suffix(".json").read_text()) if args.report_only else measure(args.out, args.repeats)
+    write_report(stem, res, markdown(res))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
