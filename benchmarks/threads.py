@@ -21,6 +21,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from benchmarks.common import HERE, REPORTS, machine_info, table, write_report
 from datagen.threads import usable_cpus
 
@@ -87,22 +89,32 @@ def timed(argv: list[str], out: Path, threads: int | None) -> float:
     return time.perf_counter() - t0
 
 
-def measure(out: Path, repeats: int) -> dict:
+def measure(out: Path, repeats: int, conditions=("idle", "busy"), only=(), results: dict | None = None) -> dict:
+    """Time the commands (those whose name contains one of ``only``, default all) under ``conditions``,
+    the settings interleaved run by run (the median of ``repeats``), into ``results`` (a new report
+    when None; the entries measured replace theirs)."""
     prepare(out)
     cpus = usable_cpus()
     settings = {"default": None, "1 thread": 1, f"{cpus} threads (torch's default)": cpus}
-    results = {"machine": machine_info(), "usable_cpus": cpus, "repeats": repeats, "load": {}, "seconds": {}}
-    for condition in ("idle", "busy"):
+    results = results or {"usable_cpus": cpus, "load": {}, "seconds": {}}
+    results.update(machine=machine_info())
+    chosen = {k: v for k, v in commands(out).items() if not only or any(o in k for o in only)}
+    for condition in conditions:
         spinners = [subprocess.Popen([sys.executable, "-c", SPIN.format(s=3600)]) for _ in range(cpus)] \
             if condition == "busy" else []
         try:
             time.sleep(2 if spinners else 0)
             results["load"][f"{condition} before"] = os.getloadavg()[0]
-            for name, argv in commands(out).items():
-                for label, threads in settings.items():
-                    runs = sorted(timed(argv, out, threads) for _ in range(repeats))
-                    results["seconds"].setdefault(condition, {}).setdefault(name, {})[label] = runs[len(runs) // 2]
-                    print(f"{condition:4s} {name:40s} {label:28s} {runs[len(runs) // 2]:7.1f} s", flush=True)
+            for name, argv in chosen.items():
+                runs = {label: [] for label in settings}
+                for _ in range(repeats):  # interleaved, so a slow moment of the machine hits every setting
+                    for label, threads in settings.items():
+                        runs[label].append(timed(argv, out, threads))
+                medians = {label: float(np.median(r)) for label, r in runs.items()}
+                results["seconds"].setdefault(condition, {})[name] = medians
+                results.setdefault("repeats", {}).setdefault(condition, {})[name] = repeats
+                print(f"{condition:4s} {name:40s} " + ", ".join(f"{k} {v:.1f} s" for k, v in medians.items()),
+                      flush=True)
             results["load"][f"{condition} after"] = os.getloadavg()[0]
         finally:
             for s in spinners:
@@ -115,7 +127,8 @@ def markdown(res: dict) -> str:
     m = res["machine"]
     lines = ["# Threads on an idle and a busy machine", "",
              f"{m['cpu_model']}, {res['usable_cpus']} usable CPUs, torch {m['torch']}, revision {m['git_revision']}, "
-             f"{m['date']}. Median of {res['repeats']} run(s) of each command as a subprocess (start-up included). "
+             f"{m['date']}. Each command as a subprocess (start-up included), the median of the runs given in the "
+             "table, the settings interleaved. "
              f"Busy: {res['usable_cpus']} spinning processes held every CPU. 1-minute load average: "
              + ", ".join(f"{k} {v:.2f}" for k, v in res["load"].items()) + ".", ""]
     worst = 0.0
@@ -126,9 +139,10 @@ def markdown(res: dict) -> str:
             best = min(secs.values())
             ratio = secs["default"] / best
             worst = max(worst, ratio)
-            rows.append([name, *(f"{secs[k]:.1f}" for k in labels), f"{ratio:.2f}x"])
+            rows.append([name, *(f"{secs[k]:.1f}" for k in labels), f"{ratio:.2f}x",
+                         res["repeats"][condition][name]])
         lines += [f"## {condition.capitalize()}", ""] + table(
-            ["command", *(f"{k}, s" for k in labels), "default / best"], rows) + [""]
+            ["command", *(f"{k}, s" for k in labels), "default / best", "runs"], rows) + [""]
     lines += [f"Worst default against the best setting: **{worst:.2f}x** (goal at most {GOAL}x: "
               f"{'met' if worst <= GOAL else 'missed'})."]
     return "\n".join(lines) + "\n"
@@ -137,11 +151,19 @@ def markdown(res: dict) -> str:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, default=OUT, help="work folder")
-    parser.add_argument("--repeats", type=int, default=1)
+    parser.add_argument("--repeats", type=int, default=1, help="runs of each command and setting (the median)")
+    parser.add_argument("--conditions", nargs="+", default=["idle", "busy"], choices=["idle", "busy"])
+    parser.add_argument("--only", nargs="+", default=[], metavar="TEXT",
+                        help="time only the commands whose name contains TEXT, replacing their entries in the "
+                             "existing report")
     parser.add_argument("--report-only", action="store_true")
     args = parser.parse_args(argv)
     stem = REPORTS / "threads"
-    res = json.loads(stem.with_suffix(".json").read_text()) if args.report_only else measure(args.out, args.repeats)
+    earlier = json.loads(stem.with_suffix(".json").read_text()) if stem.with_suffix(".json").exists() else None
+    if args.report_only:
+        res = earlier
+    else:
+        res = measure(args.out, args.repeats, args.conditions, args.only, earlier if args.only else None)
     write_report(stem, res, markdown(res))
     return 0
 
