@@ -21,6 +21,7 @@ import torch
 
 from datagen.cameras import ViewSet
 from datagen.pipeline import software_info
+from datagen.threads import usable_cpus
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
@@ -35,7 +36,7 @@ def machine_info() -> dict:
     """CPU, software versions, torch threads, git revision, load average and date of a measurement."""
     models = [line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
               if line.startswith("model name")] if Path("/proc/cpuinfo").exists() else []
-    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    usable = usable_cpus()
     return {"cpu_model": models[0] if models else platform.processor() or "unknown", "cpu_count": os.cpu_count(),
             "usable_cpus": usable, "platform": platform.platform(), "python": platform.python_version(),
             "numpy": np.__version__, "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
@@ -43,6 +44,15 @@ def machine_info() -> dict:
             "git_revision": software_info()["git_revision"], "load_average": list(os.getloadavg()),
             "nice": os.nice(0),
             "date": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+
+
+def injected_defects(root: Path) -> dict[str, list[str]]:
+    """subject -> the defect types injected into it, from a dataset's hidden ``truth/`` (only benchmarks read it)."""
+    truth = {}
+    for f in sorted((root / "truth").glob("*.json")):
+        for key, val in json.loads(f.read_text()).items():
+            truth[key] = [d["type"] for d in val.get("defects", [])]
+    return truth
 
 
 def equator_views(yaw) -> ViewSet:

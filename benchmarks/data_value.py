@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import REPORTS, machine_info, pyplot, table, write_report
+from benchmarks.common import REPORTS, injected_defects, machine_info, pyplot, table, write_report
 
 HELD_OUT_SEED, POOL_SEED, DEFECT_SEED = 7411, 5303, 6197  # used nowhere else in the project
 RESOLUTION = 128  # the encoder's input size (tiny): training resizes targets to 64 px, eval compares at 128
@@ -103,7 +103,7 @@ class Study:
         if what == "as-is":
             return root, everyone
         if what == "truth":
-            truth = _truth(root)
+            truth = injected_defects(root)
             return root, [s for s in everyone if not truth[s]]
         flagged = self.flagged(root)
         if what == "auto":
@@ -185,15 +185,6 @@ def _complete(root: Path) -> bool:
 
 def _subjects(root: Path) -> list[str]:
     return [s for shard in json.loads((root / "index.json").read_text())["shards"] for s in shard["subjects"]]
-
-
-def _truth(root: Path) -> dict[str, list[str]]:
-    """subject -> the defect types injected into it (hidden from reviewers; only studies read it)."""
-    out = {}
-    for f in sorted((root / "truth").glob("*.json")):
-        for key, value in json.loads(f.read_text()).items():
-            out[key] = [d["type"] for d in value.get("defects", [])]
-    return out
 
 
 STEP_LINE = re.compile(r"step (\d+): .*PSNR ([-\d.]+) dB, .*, ([\d.]+) s/step(?:, ([\d.]+) s data)?")
@@ -308,7 +299,7 @@ def curation_counts(study: Study) -> dict | None:
     root = study.out / "defects"
     if not (root / "preflags.json").exists():
         return None
-    truth = _truth(root)
+    truth = injected_defects(root)
     flagged = {r["subject"] for r in json.loads((root / "preflags.json").read_text())["subjects"] if r["flags"]}
     bad = {s for s, d in truth.items() if d}
     kinds = {}

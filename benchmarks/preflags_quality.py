@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from benchmarks.common import equator_views, load_average, machine_info
+from benchmarks.common import equator_views, injected_defects, load_average, machine_info
 from datagen.defects import INJECTED
 from datagen.files import atomic_write
 from datagen.generators.procedural import ProceduralConfig
@@ -162,14 +162,6 @@ def generate(out: Path, seed: int, rate: float, subjects: int, resolution: int, 
                    software=software_info())
     summary = run_sample(spec, progress=False, workers=workers, resume=True)
     return round(time.perf_counter() - t0, 1) if summary["shards_written"] else 0.0
-
-
-def load_truth(root: Path) -> dict:
-    truth = {}
-    for f in sorted((root / "truth").glob("*.json")):
-        for key, val in json.loads(f.read_text()).items():
-            truth[key] = [d["type"] for d in val.get("defects", [])]
-    return truth
 
 
 def scored(root: Path, workers: int) -> tuple[dict, list]:
@@ -586,7 +578,7 @@ def main(argv=None) -> int:
         print(f"{name}: {root}", flush=True)
         gen_s = generate(root, seed, args.defect_rate, args.subjects, res, args.workers)
         report, _ = scored(root, args.workers)
-        ev = evaluate(report, load_truth(root))
+        ev = evaluate(report, injected_defects(root))
         run = {"seed": seed, "resolution": res, "generation_seconds": gen_s, "eval": ev,
                "cuts": {n: d["calibrated_cut"] for n, d in report["detectors"].items()},
                "shares": {n: d["false_alarm_share"] for n, d in report["detectors"].items()}}
@@ -604,7 +596,7 @@ def main(argv=None) -> int:
         root = base / f"seed{seeds[-1]}-{args.learn_subjects}x{args.learn_resolution}"
         generate(root, seeds[-1], args.defect_rate, args.learn_subjects, args.learn_resolution, args.workers)
         report, thumbs = scored(root, args.workers)
-        data["learning"] = dict(learning(report, thumbs, load_truth(root), args.verdicts), seed=seeds[-1])
+        data["learning"] = dict(learning(report, thumbs, injected_defects(root), args.verdicts), seed=seeds[-1])
     data["synthetic_nulls"] = synthetic_nulls()
     m = data["machine"]
     data["load"] = (f"load average {load0} before and {load_average()} after the run on {m.get('usable_cpus')} CPUs, "

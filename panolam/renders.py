@@ -55,10 +55,11 @@ def write_reconstructions(model, data, subjects: list[tuple[str, int]], out) -> 
         try:
             for key in keys:
                 fields = read_fields(data, shard, key)
-                picked = nearest_views(view_yaws(fields))
+                yaws = view_yaws(fields)
+                picked = nearest_views(yaws)
                 if picked is None:
                     continue
-                n = len(view_yaws(fields))
+                n = len(yaws)
                 front = picked["front"]
                 views = decode_views(key, fields, [front] + [v for v in range(n) if v != front], None,
                                      model.cfg.image_size, str(tar_path(data, shard)))
