@@ -10,6 +10,7 @@ import resource
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Callable
 from contextlib import contextmanager
@@ -198,6 +199,17 @@ def benchmark_parser(doc: str, quick_help: str, report_only_help: str) -> argpar
     parser.add_argument("--quick", action="store_true", help=quick_help)
     parser.add_argument("--report-only", action="store_true", help=report_only_help)
     return parser
+
+
+def add_work_folder(parser: argparse.ArgumentParser, name: str, what: str) -> None:
+    """``--work``: where ``what`` (default: /tmp/panolam-``name``)."""
+    parser.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / f"panolam-{name}",
+                        help=f"where {what} (default: a folder in /tmp)")
+
+
+def report_stem(name: str, quick: bool) -> Path:
+    """The report's path without suffix: REPORTS/``name``, ``_quick`` for a quick run."""
+    return REPORTS / (f"{name}_quick" if quick else name)
 
 
 def module_name(script: Path) -> str:

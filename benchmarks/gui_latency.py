@@ -44,8 +44,8 @@ from pathlib import Path
 import numpy as np
 
 
-from benchmarks.common import (REPORTS, benchmark_parser, bullets, command_line, load_average,
-                               machine_info, reproduce, table, write_report)
+from benchmarks.common import (REPORTS, add_work_folder, benchmark_parser, bullets, command_line, load_average,
+                               machine_info, report_stem, reproduce, table, write_report)
 from datagen.pipeline import JobSpec, make_index, run_sample, software_info
 from datagen.files import atomic_write
 from datagen.shards import INDEX_NAME, ShardWriter, dumps, iter_tar_samples, read_index, subject_id
@@ -501,10 +501,9 @@ def measure(quick: bool, work: Path, command: str) -> dict:
 def main(argv=None):
     parser = benchmark_parser(__doc__, "fewer subjects and keys (a check that the script works)",
                               "rewrite the report from the saved JSON")
-    parser.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "panolam-gui-latency",
-                        help="where the benchmark datasets are built and kept (default: a folder in /tmp)")
+    add_work_folder(parser, "gui-latency", "the benchmark datasets are built and kept")
     args = parser.parse_args(argv)
-    stem = REPORTS / ("gui_latency_quick" if args.quick else "gui_latency")
+    stem = report_stem("gui_latency", args.quick)
     if args.report_only:
         results = json.loads(stem.with_suffix(".json").read_text())
     else:

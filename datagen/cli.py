@@ -5,28 +5,12 @@ import argparse
 import json
 import sys
 
-from .cameras import PROTOCOLS
-from .errors import OneLineParser, UserError, run_command
+from .command_line import OneLineParser, add_options, given, run_command
+from .errors import SettingError, UserError
 from .threads import add_option as add_threads_option
 from .text import byte_size, plural, readable
-from .generators import AVAILABLE
-
-
-def parse_background(text: str, allow_own: bool):
-    """'own' (GANs only), white, black, grey or R,G,B in [0, 1]."""
-    named = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0), "grey": (0.5, 0.5, 0.5)}
-    if text == "own" and allow_own:
-        return "own"
-    if text in named:
-        return named[text]
-    try:
-        rgb = tuple(float(v) for v in text.split(","))
-    except ValueError:
-        rgb = ()
-    if len(rgb) != 3 or not all(0.0 <= v <= 1.0 for v in rgb):
-        choices = "own (GANs), white, black, grey" if allow_own else "white, black, grey"
-        raise UserError(f"--background must be {choices} or R,G,B with values in [0, 1]")
-    return rgb
+from .generators.settings import GANConfig, ProceduralConfig
+from .job import JobSpec
 
 
 def parse_workers(text: str):
@@ -44,15 +28,7 @@ def build_parser() -> OneLineParser:
     sub = p.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
 
     s = sub.add_parser("sample", help="render subjects into WebDataset shards")
-    s.add_argument("--gan", default="procedural", choices=AVAILABLE, help="head generator")
-    s.add_argument("--checkpoint", help="generator checkpoint file (GAN generators)")
-    s.add_argument("--protocol", default="360", choices=PROTOCOLS, help="camera protocol")
-    s.add_argument("--subjects", type=int, default=16, help="number of subjects")
-    s.add_argument("--resolution", type=int, default=128, help="image size in pixels (square)")
-    s.add_argument("--views", type=int, default=32, help="views per subject (paper: 32)")
-    s.add_argument("--seed", type=int, default=0, help="dataset seed; every draw derives from (seed, subject)")
-    s.add_argument("--shard-size", type=int, default=8, help="subjects per shard")
-    s.add_argument("--out", required=True, help="output dataset folder")
+    add_options(s, JobSpec)
     s.add_argument("--workers", type=parse_workers, default=1, metavar="auto|N",
                    help="worker processes on this machine: N, or auto = one per GPU on CUDA (one with --device "
                         "cuda:N), else one per CPU core up to this job's shard count. On CUDA worker k renders on "
@@ -67,35 +43,9 @@ def build_parser() -> OneLineParser:
     s.add_argument("--shard-index", type=int, default=0, help="this job's part K of --num-shards (array jobs)")
     s.add_argument("--num-shards", type=int, default=1, help="split the shards over N jobs; job K writes shards s with s %% N == K")
     s.add_argument("--resume", action="store_true", help="skip complete shards, redo partial ones")
-    s.add_argument("--defect-rate", type=float, default=None, help="procedural: fraction of subjects with an injected defect (default 0.04)")
-    s.add_argument("--defect-types", default=None, metavar="A,B",
-                   help="procedural: the defect classes to draw from (default all: janus, flat_back, haze, seam, "
-                        "blurry_back, hole, floaters, washed_out)")
-    s.add_argument("--defect-severity", default=None, metavar="LO,HI",
-                   help="procedural: severity range of injected defects, within [0, 1] (default 0.3,1)")
-    s.add_argument("--background", default=None,
-                   help="white, black, grey or R,G,B (procedural default white); GANs also 'own' (default)")
-    s.add_argument("--truncation", type=float, default=None, help="GANs: truncation psi (default 0.7)")
-    s.add_argument("--truncation-cutoff", type=int, default=None, help="GANs: truncate the first N ws (default 14)")
-    s.add_argument("--save-planes", type=int, default=0, metavar="RES",
-                   help="GANs: also store the plane features in fp16 at RES x RES (for distillation)")
-    s.add_argument("--save-shape", type=int, default=0, metavar="RES",
-                   help="also store each subject's head surface, meshed on a RES^3 grid over the generator's box, as "
-                        "shape.ply in its record (binary PLY with vertex colours, world units; see datagen shape)")
-    s.add_argument("--shape-level", type=float, default=None, metavar="L",
-                   help="GANs with --save-shape: the raw density level of the surface (default 10, the originals')")
-    s.add_argument("--device", default=None,
-                   help="GANs: cpu, cuda (every GPU, see --workers), cuda:N (that GPU only; local backend) or auto "
-                        "(default: cuda when available). The procedural generator runs on the CPU")
-    s.add_argument("--precision", default=None, choices=("auto", "fp32", "fp16"),
-                   help="GANs: 'auto' (default) runs the originals' fp16 blocks (the super-resolution of the released "
-                        "checkpoints) in fp16 on CUDA and everything in fp32 on CPU; 'fp32' never uses fp16")
-    s.add_argument("--clip-rays", action="store_true",
-                   help="GANs: march each ray only where it crosses the generator's box and skip rays that miss it "
-                        "(the originals march the whole ray range)")
-    s.add_argument("--memory-budget-mb", type=float, default=None, metavar="MB",
-                   help="GANs: working memory per chunk of rays / batch of super-resolved views "
-                        "(default 64 on CPU, a quarter of the GPU's memory on CUDA)")
+    add_options(s, ProceduralConfig, only=("background",))
+    add_options(s, ProceduralConfig, help_prefix="procedural: ")
+    add_options(s, GANConfig, help_prefix="GANs: ")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
 
     v = sub.add_parser("verify", help="check checksums, decoding, counts and metadata of a dataset")
@@ -141,61 +91,23 @@ def build_parser() -> OneLineParser:
     return p
 
 
-def _sample(args) -> int:
-    from .pipeline import JobSpec, run_sample, software_info
+def generator_options(args) -> dict:
+    """The generator settings given on the command line, for the chosen generator; a SettingError for one
+    that only the other kind of generator has."""
+    mine, other = (ProceduralConfig, GANConfig) if (args.gan or JobSpec.gan) == "procedural" \
+        else (GANConfig, ProceduralConfig)
+    options = given(args, mine)
+    for name in given(args, other):
+        if name not in options:
+            raise SettingError(f"{{{name}}}: only for the " +
+                               ("GAN generators" if other is GANConfig else "procedural generator"))
+    return options
 
-    options = {}
-    gan = args.gan != "procedural"
-    if args.defect_rate is not None:
-        if not 0.0 <= args.defect_rate <= 1.0:
-            raise UserError("--defect-rate must be between 0 and 1")
-        options["defect_rate"] = args.defect_rate
-    if args.defect_types is not None:
-        from .generators.procedural import DEFECT_TYPES
-        kinds = [k.strip() for k in args.defect_types.split(",") if k.strip()]
-        unknown = [k for k in kinds if k not in DEFECT_TYPES]
-        if not kinds or unknown:
-            raise UserError(f"--defect-types: unknown {', '.join(unknown) or '(none given)'}; choose from "
-                            f"{', '.join(DEFECT_TYPES)}")
-        options["defect_types"] = kinds
-    if args.defect_severity is not None:
-        try:
-            lo, hi = (float(x) for x in args.defect_severity.split(","))
-        except ValueError:
-            lo = hi = float("nan")
-        if not 0.0 <= lo <= hi <= 1.0:
-            raise UserError("--defect-severity must be LO,HI with 0 <= LO <= HI <= 1")
-        options["defect_severity"] = [lo, hi]
-    if args.background is not None:
-        bg = parse_background(args.background, allow_own=gan)
-        options["background"] = bg if isinstance(bg, str) else list(bg)
-    if args.truncation is not None:
-        if not 0.0 <= args.truncation <= 2.0:
-            raise UserError("--truncation must be between 0 and 2")
-        options["truncation_psi"] = args.truncation
-    if args.truncation_cutoff is not None:
-        if args.truncation_cutoff < 0:
-            raise UserError("--truncation-cutoff must be at least 0")
-        options["truncation_cutoff"] = args.truncation_cutoff
-    if args.save_planes:
-        if not gan:
-            raise UserError("--save-planes: the procedural generator has no planes")
-        if not 8 <= args.save_planes <= 1024:
-            raise UserError("--save-planes must be between 8 and 1024")
-        options["save_planes"] = args.save_planes
-    gan_only = {"device": args.device, "precision": args.precision, "clip_rays": args.clip_rays or None,
-                "memory_budget_mb": args.memory_budget_mb}
-    for key, value in gan_only.items():
-        if value is not None:
-            if not gan:
-                raise UserError(f"--{key.replace('_', '-')}: only for the GAN generators")
-            options[key] = value
-    if args.memory_budget_mb is not None and not args.memory_budget_mb > 0:
-        raise UserError("--memory-budget-mb must be above 0")
-    spec = JobSpec(out=args.out, gan=args.gan, checkpoint=args.checkpoint, generator_options=options,
-                   protocol=args.protocol, subjects=args.subjects, resolution=args.resolution, views=args.views,
-                   seed=args.seed, shard_size=args.shard_size, software=software_info(), save_shape=args.save_shape,
-                   shape_level=args.shape_level)
+
+def _sample(args) -> int:
+    from .pipeline import run_sample, software_info
+
+    spec = JobSpec(**given(args, JobSpec), generator_options=generator_options(args), software=software_info())
     summary = run_sample(spec, workers=args.workers, backend=args.backend, ray_address=args.ray_address,
                          gpus_per_task=args.gpus_per_task, shard_index=args.shard_index, num_shards=args.num_shards,
                          resume=args.resume, progress=not args.quiet, threads=args.threads)
@@ -252,7 +164,7 @@ def _shape(args) -> int:
     from .shapes import check_resolution, write_shape
 
     if args.res is not None:
-        check_resolution(args.res, "--res")
+        check_resolution(args.res, "res")
     if args.memory_budget_mb is not None and not args.memory_budget_mb > 0:
         raise UserError("--memory-budget-mb must be above 0")
     done = write_shape(args.dataset, parse_subject(args.subject), args.out, resolution=args.res, level=args.level,
@@ -281,7 +193,8 @@ COMMANDS = {"sample": _sample, "verify": _verify, "preview": _preview, "export":
 
 
 def main(argv=None) -> int:
-    return run_command("datagen", COMMANDS, build_parser().parse_args(argv), "rerun with --resume to continue")
+    parser = build_parser()
+    return run_command("datagen", COMMANDS, parser.parse_args(argv), "rerun with --resume to continue", parser)
 
 
 if __name__ == "__main__":

@@ -12,22 +12,23 @@ import platform
 import subprocess
 import time
 from contextlib import closing
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from . import __version__
-from .cameras import PROTOCOLS, protocol_pivot, sample_views
+from .cameras import protocol_pivot, sample_views
 from .device import ray_task_device, worker_devices
-from .errors import UserError
+from .errors import SettingError, UserError
+from .command_line import progress_bar
+from .job import JobSpec
 from .files import LockBusy, atomic_write, byte_lock
 from .generators import GANS, make_generator
 from .generators.base import STREAM_CAMERAS, subject_rng
-from .generators.gan import NOT_RECORDED
 from .raycluster import ray_connection, ray_results
-from .shapes import check_resolution, encode_mesh, extract_shape
+from .shapes import encode_mesh, extract_shape
 from .shards import (FORMAT, INDEX_NAME, ShardWriter, dumps, encode_subject, is_complete, job_shards,
                      read_index, remove_partial, shard_name, subject_id, tar_path, view_name)
 from .threads import choose, usable_cpus, use
@@ -35,44 +36,6 @@ from .threads import choose, usable_cpus, use
 DEPTH_MEANING = "distance along the unit ray from the camera centre, world units; 0 where alpha is 0"
 CAMERA_CONVENTION = ("OpenCV cam2world (x right, y down, z forward); intrinsics normalized by image size; "
                      "world y up, face toward +z")
-
-
-@dataclass(frozen=True)
-class JobSpec:
-    """Everything that determines a dataset's bytes (plus where to write it)."""
-
-    out: str
-    gan: str = "procedural"
-    checkpoint: str | None = None
-    generator_options: dict = field(default_factory=dict)
-    protocol: str = "360"
-    subjects: int = 16
-    resolution: int = 128
-    views: int = 32
-    seed: int = 0
-    shard_size: int = 8
-    software: dict = field(default_factory=dict)
-    save_shape: int = 0  # grid resolution of each subject's stored surface (0: none; datagen/shapes.py)
-    shape_level: float | None = None  # GANs: the surface's raw density level (None: the originals' 10)
-
-    @property
-    def num_shard_files(self) -> int:
-        return -(-self.subjects // self.shard_size)
-
-    def shard_subjects(self, shard: int) -> range:
-        return range(shard * self.shard_size, min(self.subjects, (shard + 1) * self.shard_size))
-
-    def settings(self) -> dict:
-        """What the index records: the job less its output folder and the generator options that
-        only place or split the work (device, memory budget), so a dataset is the same, and resumes,
-        wherever it runs. The shape settings appear only when shapes are stored (a dataset without
-        them has the index it had before shapes existed)."""
-        s = asdict(self)
-        s.pop("out")
-        if not self.save_shape:
-            del s["save_shape"], s["shape_level"]
-        s["generator_options"] = {k: v for k, v in s["generator_options"].items() if k not in NOT_RECORDED}
-        return s
 
 
 def software_info() -> dict:
@@ -91,29 +54,6 @@ def software_info() -> dict:
         pass
     return {"package": "panolam-toolkit", "version": __version__, "git_revision": rev,
             "torch": torch.__version__.split("+")[0], "numpy": np.__version__, "python": platform.python_version()}
-
-
-def validate(spec: JobSpec) -> None:
-    if spec.protocol not in PROTOCOLS:
-        raise UserError(f"unknown protocol {spec.protocol!r}; choose one of: {', '.join(PROTOCOLS)}")
-    checks = [(spec.subjects >= 1, "--subjects must be at least 1"),
-              (16 <= spec.resolution <= 4096, "--resolution must be between 16 and 4096"),
-              (1 <= spec.views <= 1024, "--views must be between 1 and 1024"),
-              (spec.shard_size >= 1, "--shard-size must be at least 1"),
-              (spec.seed >= 0, "--seed must be non-negative")]
-    for ok, message in checks:
-        if not ok:
-            raise UserError(message)
-    if spec.save_shape:
-        check_resolution(spec.save_shape, "--save-shape")
-    if spec.shape_level is not None:
-        if not spec.save_shape:
-            raise UserError("--shape-level: only with --save-shape")
-        if spec.gan not in GANS:
-            raise UserError("--shape-level: only for the GAN generators (the procedural surface is the zero level "
-                            "of its signed distance)")
-        if not np.isfinite(spec.shape_level):
-            raise UserError("--shape-level must be a finite number")
 
 
 def make_index(spec: JobSpec, generator_description: dict) -> dict:
@@ -185,8 +125,8 @@ def write_shard(spec: JobSpec, shard: int, progress=None) -> dict:
         with byte_lock(Path(spec.out) / LOCK_NAME, 1 + shard, blocking=False):
             return _write_shard(spec, shard, progress)
     except LockBusy:
-        raise UserError(f"{tar_path(spec.out, shard)} is being written by another datagen run into {spec.out}; "
-                        "wait for it, or give each job its own --shard-index") from None
+        raise SettingError(f"{tar_path(spec.out, shard)} is being written by another datagen run into {spec.out}; "
+                           "wait for it, or give each job its own {shard_index}") from None
 
 
 def _write_shard(spec: JobSpec, shard: int, progress) -> dict:
@@ -296,7 +236,7 @@ def ray_task_options(nodes: list[dict], threads: int, gpus: float | None) -> dic
     if gpus:
         alive = [r for r in alive if r.get("GPU", 0) > 0]
         if not alive:
-            raise UserError("the Ray cluster has no GPU; render on the CPU with --device cpu")
+            raise SettingError("the Ray cluster has no GPU; render on the CPU with {device} cpu")
     biggest = max((r.get("CPU", 0) for r in alive), default=0)
     options = {"num_cpus": max(1, min(threads, int(biggest) or threads))}
     if gpus:
@@ -337,22 +277,6 @@ def _run_ray_tasks(ray, spec: JobSpec, shards: list[int], threads: int, gpus: fl
             bar.update(len(sidecar["subjects"]) * spec.views)
 
 
-class _NullBar:
-    def update(self, n=1):
-        pass
-
-    def close(self):
-        pass
-
-
-def _progress_bar(total: int, enabled: bool):
-    if not enabled:
-        return _NullBar()
-    from tqdm import tqdm
-
-    return tqdm(total=total, unit="img", unit_scale=False, dynamic_ncols=True, desc="rendering", smoothing=0.1)
-
-
 def prepare_output(spec: JobSpec, index: dict) -> None:
     """Create the output folder and publish the index; refuse a folder holding another dataset.
 
@@ -381,8 +305,8 @@ def _publish_index(out: Path, index: dict) -> None:
                            if k != "software" and existing["settings"].get(k) != index["settings"].get(k))
         if differing or existing["generator"] != index["generator"]:
             what = ", ".join(differing) or "generator configuration"
-            raise UserError(f"{out} already holds a dataset made with other settings ({what}); "
-                            "choose another --out")
+            raise SettingError(f"{out} already holds a dataset made with other settings ({what}); "
+                               "choose another {out}")
         return
     atomic_write(out / INDEX_NAME, dumps(index))
 
@@ -400,11 +324,11 @@ def run_sample(spec: JobSpec, *, workers: int | str = 1, backend: str = "local",
     A job whose shards are all complete writes nothing, with or without ``resume``.
     Returns a summary: shards written and skipped, subjects in this job's shards, images, seconds.
     """
-    validate(spec)
+    spec.check()
     if workers != "auto" and not (isinstance(workers, int) and workers >= 1):
-        raise UserError("--workers must be auto or at least 1")
+        raise SettingError("{workers} must be auto or at least 1")
     if backend not in ("local", "ray"):
-        raise UserError(f"unknown backend {backend!r}; choose local or ray")
+        raise SettingError(f"{{backend}} {backend!r}: choose local or ray")
     mine = job_shards(spec.num_shard_files, shard_index, num_shards)
     requested = requested_device(spec)
     devices = worker_devices(requested, workers, max(1, min(usable_cpus(), len(mine))))
@@ -414,14 +338,14 @@ def run_sample(spec: JobSpec, *, workers: int | str = 1, backend: str = "local",
     prepare_output(spec, index)
     done = [s for s in mine if is_complete(spec.out, s)]
     if done and not resume and len(done) < len(mine):
-        raise UserError(f"{spec.out} already has {len(done)} complete shard(s) of this job; "
-                        "pass --resume to continue, or choose another --out")
+        raise SettingError(f"{spec.out} already has {len(done)} complete shard(s) of this job; "
+                           "pass {resume} to continue, or choose another {out}")
     todo = [s for s in mine if s not in done]
     subjects = sum(len(spec.shard_subjects(s)) for s in mine)
     if done and not todo:  # the same job asked again
         return {"shards_written": 0, "shards_skipped": len(done), "subjects": subjects, "images": 0, "seconds": 0.0}
     images = sum(len(spec.shard_subjects(s)) for s in todo) * spec.views
-    bar = _progress_bar(images, progress)
+    bar = progress_bar(images, "img", "rendering", progress)
     start = time.perf_counter()
     try:
         if backend == "ray":
@@ -430,8 +354,8 @@ def run_sample(spec: JobSpec, *, workers: int | str = 1, backend: str = "local",
             _run_local(spec, todo, devices, bar, threads)
     except OSError as e:
         if e.errno == errno.ENOSPC:
-            raise UserError(f"disk full while writing {e.filename or spec.out}; "
-                            "rerun with --resume once space is free") from None
+            raise SettingError(f"disk full while writing {e.filename or spec.out}; "
+                               "rerun with {resume} once space is free") from None
         raise
     finally:
         bar.close()
@@ -445,14 +369,14 @@ def _ray_gpus(backend: str, requested: str, device: str, gpus_per_task: float | 
     cuda = device.startswith("cuda")
     if gpus_per_task is not None:
         if backend != "ray":
-            raise UserError("--gpus-per-task: only for --backend ray")
+            raise SettingError("{gpus_per_task}: only for {backend} ray")
         if not 0 < gpus_per_task <= 1:
-            raise UserError("--gpus-per-task must be above 0 and at most 1 (a shard task renders on one GPU)")
+            raise SettingError("{gpus_per_task} must be above 0 and at most 1 (a shard task renders on one GPU)")
         if not cuda:
-            raise UserError("--gpus-per-task: the device is the CPU; Ray tasks ask for GPUs only to render on CUDA")
+            raise SettingError("{gpus_per_task}: the device is the CPU; Ray tasks ask for GPUs only to render on CUDA")
     if backend != "ray" or not cuda:
         return None
     if ":" in requested:
-        raise UserError(f"--device {requested} pins a GPU of this machine; with --backend ray use cuda or auto "
+        raise SettingError(f"{{device}} {requested} pins a GPU of this machine; with {{backend}} ray use cuda or auto "
                         "(each task renders on the GPU Ray gives it)")
     return 1 if gpus_per_task is None else gpus_per_task

@@ -20,6 +20,15 @@ threshold (1: unchanged); ``false_alarm_share`` its part of ``calibration.false_
 share of clean subjects the union of detectors may flag (cut 1 and share None when scored
 uncalibrated). ``calibration`` names the rule's settings (``labeling_tool/preflags/detector.py``):
 the quantiles its null fit spans, the fewest subjects a fit needs and its rounds.
+
+``<dataset>/preflags-queue.json``, written after each report of the dataset, is what the review window's
+queue needs from it, small enough to open at once with 165K subjects (the report is ~2 KB a subject)::
+
+    {"format": "panolam-preflags-queue/1", "report": {"bytes", "mtime_ns"},
+     "subjects": [[subject, score, rank, [[detector, score], ...flags, highest first]], ...]}
+
+``report`` is the stat of the ``preflags.json`` it was made from: a queue whose report has changed since
+is not used (:func:`read_review_queue` then returns None and the report itself is read).
 """
 from __future__ import annotations
 
@@ -31,15 +40,49 @@ from .files import atomic_write, read_json
 from .shards import index_sha256
 
 FORMAT = "panolam-preflags/1"
+QUEUE_FORMAT = "panolam-preflags-queue/1"
 PREFLAGS_NAME = "preflags.json"
+QUEUE_NAME = "preflags-queue.json"
 
 
 def write_preflags(root, report: dict, path=None) -> Path:
-    """Write the report to ``path`` (default ``<root>/preflags.json``) atomically."""
+    """Write the report to ``path`` (default ``<root>/preflags.json``, then its review queue) atomically."""
     if report.get("format") != FORMAT:
         raise ValueError(f"not a pre-flags report (format {report.get('format')!r})")
-    path = Path(path) if path is not None else Path(root) / PREFLAGS_NAME
-    return atomic_write(path, (json.dumps(report, indent=1, allow_nan=False) + "\n").encode())
+    own = path is None
+    path = Path(root) / PREFLAGS_NAME if own else Path(path)
+    atomic_write(path, (json.dumps(report, indent=1, allow_nan=False) + "\n").encode())
+    if own:
+        stat = path.stat()
+        queue = {"format": QUEUE_FORMAT, "report": {"bytes": stat.st_size, "mtime_ns": stat.st_mtime_ns},
+                 "subjects": queue_rows(report)}
+        atomic_write(Path(root) / QUEUE_NAME, (json.dumps(queue, separators=(",", ":")) + "\n").encode())
+    return path
+
+
+def queue_rows(report: dict) -> list:
+    """[subject, score, rank, [[detector, score], ...]] per subject of a report: its flags, highest first;
+    rank orders the worst-first queue (the learned rank where there is one, else the score)."""
+    return [[r["subject"], r["score"], r.get("rank", r["score"]),
+             sorted(([k, r["detectors"][k]["score"]] for k in r["flags"]), key=lambda f: -f[1])]
+            for r in report["subjects"]]
+
+
+def read_review_queue(root) -> list | None:
+    """The review queue's rows (:func:`queue_rows`) of the dataset at ``root``: from its queue file when that
+    was made from the ``preflags.json`` there now, else from the report; None without a report."""
+    report_path, queue_path = Path(root) / PREFLAGS_NAME, Path(root) / QUEUE_NAME
+    if not report_path.exists():
+        return None
+    try:
+        queue = json.loads(queue_path.read_bytes())
+        stat = report_path.stat()
+        if queue.get("format") == QUEUE_FORMAT and queue.get("report") == {"bytes": stat.st_size,
+                                                                            "mtime_ns": stat.st_mtime_ns}:
+            return queue["subjects"]
+    except (OSError, ValueError, AttributeError):
+        pass  # missing, unreadable or not a queue: the report has everything
+    return queue_rows(read_preflags(root))
 
 
 def read_preflags(root, path=None) -> dict:

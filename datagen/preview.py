@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from .errors import UserError
+from .errors import SettingError, UserError
 from .files import atomic_write
 from .shards import is_complete, read_index, read_subject, subject_id
 
@@ -74,7 +74,7 @@ def parse_subject(arg: str) -> str:
         return subject_id(int(arg))
     if arg.startswith("subj") and arg[4:].isdigit():
         return arg
-    raise UserError(f"--subject must be a subject number or id like subj00000003, not {arg!r}")
+    raise SettingError(f"{{subject}} must be a subject number or id like subj00000003, not {arg!r}")
 
 
 def write_contact_sheet(root, subject: str, out, columns: int = 8, with_mask_depth: bool = False) -> Path:

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import DatasetError, UserError
+from .errors import DatasetError, SettingError, UserError
 from .files import atomic_write
 from .shards import (SHAPE_FIELD, find_shard, is_complete, read_index, read_range, read_sidecar, shard_index,
                      subject_id, tar_path, to_uint8)
@@ -62,9 +62,10 @@ class Mesh:
     record: dict
 
 
-def check_resolution(res: int, option: str) -> None:
+def check_resolution(res: int, setting: str) -> None:
+    """A SettingError naming ``setting`` for a grid resolution outside what a mesh can be made at."""
     if not MIN_RESOLUTION <= res <= MAX_RESOLUTION:
-        raise UserError(f"{option} must be between {MIN_RESOLUTION} and {MAX_RESOLUTION}")
+        raise SettingError(f"{{{setting}}} must be between {MIN_RESOLUTION} and {MAX_RESOLUTION}")
 
 
 def default_level(gan: str) -> float:
@@ -77,7 +78,7 @@ def extract_shape(generator, subject, resolution: int, level: float | None = Non
     ``level``: GANs only, the raw density level (default 10, the originals')."""
     from .generators.gan import GANHeads  # torch: imported only where shapes are made
 
-    check_resolution(resolution, "the shape resolution")
+    check_resolution(resolution, "resolution")
     if isinstance(generator, GANHeads):
         return _gan_shape(generator, subject, resolution, GAN_LEVEL if level is None else float(level))
     if level is not None and level != SDF_LEVEL:
@@ -304,7 +305,7 @@ def subject_shape(root, key: str, resolution: int | None = None, level: float | 
     if gan != "procedural":
         options.update({k: v for k, v in (("device", device), ("memory_budget_mb", budget_mb)) if v is not None})
     elif device is not None or budget_mb is not None or checkpoint is not None:
-        raise UserError("--device, --memory-budget-mb and --checkpoint are only for GAN datasets")
+        raise SettingError("{device}, {memory_budget_mb} and {checkpoint} are only for GAN datasets")
     generator = make_generator(gan, checkpoint or settings.get("checkpoint"), options)
     recorded = index["generator"].get("checkpoint_sha256")
     if generator.describe()["checkpoint_sha256"] != recorded:

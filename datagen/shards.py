@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from .errors import DatasetError, UserError
+from .errors import DatasetError, SettingError
 from .files import atomic_write, read_json, require, sha256_file
 
 FORMAT = "panolam-heads/1"
@@ -67,7 +67,7 @@ def job_shards(num_shard_files: int, job: int, jobs: int) -> list[int]:
     """The shard numbers array job ``job`` of ``jobs`` (--shard-index K --num-shards N) handles:
     those s with s % jobs == job, of 0 .. num_shard_files - 1. A UserError when not 0 <= K < N."""
     if jobs < 1 or not 0 <= job < jobs:
-        raise UserError("--shard-index must satisfy 0 <= shard-index < num-shards")
+        raise SettingError("{shard_index} must satisfy 0 <= shard-index < num-shards")
     return [s for s in range(num_shard_files) if s % jobs == job]
 
 

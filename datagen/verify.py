@@ -6,10 +6,11 @@ from pathlib import Path
 
 import numpy as np
 
+from .command_line import progress_bar
 from .errors import DatasetError
 from .files import sha256_file
 from .shapes import check_mesh
-from .shards import (SHAPE_FIELD, TRUTH_DIR, decode_sample, iter_tar_samples, read_fields, read_index,
+from .shards import (SHAPE_FIELD, TRUTH_DIR, decode_sample, iter_tar_samples, read_index, read_range,
                      read_sidecar, shard_index, sidecar_path, tar_path, truth_path)
 
 SUBJECT_KEYS = ("format", "subject_id", "subject_index", "dataset_seed", "generator", "latent", "protocol",
@@ -129,7 +130,7 @@ def check_byte_ranges(root, i: int, side: dict, digests: dict) -> list[str]:
     problems = []
     for key in digests:
         try:
-            fields = read_fields(root, i, key)
+            fields = read_range(tar_path(root, i), key, *offsets[key])
         except DatasetError as e:
             problems.append(f"{e} (byte range {offsets[key]} in {sidecar_path(root, i).name})")
             continue
@@ -147,16 +148,14 @@ def verify_dataset(root, progress: bool = False) -> dict:
     shape = index["settings"].get("save_shape", 0)
     problems, complete, subjects = [], 0, 0
     shards = index["shards"]
-    it = shards
-    if progress:
-        from tqdm import tqdm
-
-        it = tqdm(shards, unit="shard", desc="verifying")
-    for shard in it:
+    bar = progress_bar(len(shards), "shard", "verifying", progress)
+    for shard in shards:
         p = verify_shard(root, shard, views, resolution, shape)
         problems += p
         if not p:
             complete += 1
             subjects += len(shard["subjects"])
+        bar.update(1)
+    bar.close()
     stray = sorted(str(p) for p in list(root.glob(".*tmp-*")) + list((root / TRUTH_DIR).glob(".*tmp-*")))
     return {"shards": len(shards), "complete": complete, "subjects": subjects, "problems": problems, "stray": stray}

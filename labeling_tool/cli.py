@@ -4,9 +4,11 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
-from datagen.errors import OneLineParser, UserError, optional_import, run_command
+from datagen.command_line import OneLineParser, add_options, at_least, given, run_command, setting, unit_interval
+from datagen.errors import SettingError, UserError, optional_import
 from datagen.threads import add_option as add_threads_option
 from datagen.shards import read_index
 
@@ -24,37 +26,64 @@ def window_size(text: str) -> tuple[int, int]:
     return w, h
 
 
+@dataclass(frozen=True)
+class AutoOptions:
+    """The options of ``label-tool auto``; which go together is checked by :meth:`check`."""
+
+    workers: int = setting(1, "processes that read and measure subjects", parse=at_least(1))
+    learn: str | None = setting(None, "re-rank the unreviewed subjects with a classifier fitted on the verdicts in "
+                                      "this folder of event logs (after about 20 or more verdicts with both good and "
+                                      "bad ones)", metavar="LABELS")
+    skip_incomplete: bool = setting(False, "score the complete shards and list the others (default: a missing, "
+                                           "incomplete or damaged shard is an error)")
+    false_alarm_rate: float | None = setting(None, "share of clean subjects the detectors together may flag, 0 <= R "
+                                                   "< 1 (default 0.03); the union is calibrated to it on this dataset. "
+                                                   "0: every detector at its own threshold, uncalibrated",
+                                             parse=unit_interval, metavar="R")
+    top: int = setting(10, "print the N worst subjects", parse=at_least(0), metavar="N")
+    quiet: bool = setting(False, "no progress bar")
+    shard_index: int | None = setting(None, "array jobs: measure only the shards s with s %% N == K and write their "
+                                            "records to a slice file (score them all with --merge once every slice "
+                                            "is done)", parse=at_least(0), metavar="K")
+    num_shards: int | None = setting(None, "array jobs: how many slices (with --shard-index)", parse=at_least(1),
+                                     metavar="N")
+    merge: bool = setting(False, "score the whole dataset from the slice files of --shard-index/--num-shards jobs")
+    out: str | None = setting(None, "folder of the slice files (default: DATASET/preflags-slices)", metavar="DIR")
+    backend: str = setting("local", "local processes (--workers), or one task per shard on a Ray cluster (this "
+                                    "process scores)", choices=("local", "ray"))
+    ray_address: str | None = setting(None, "Ray cluster to use (default: RAY_ADDRESS, else a local Ray instance)",
+                                      metavar="ADDR")
+
+    @property
+    def sliced(self) -> bool:
+        return self.shard_index is not None or self.num_shards is not None
+
+    def check(self) -> None:
+        """A SettingError for options that do not go together."""
+        if self.sliced and (self.shard_index is None or self.num_shards is None):
+            raise SettingError("{shard_index} and {num_shards} go together")
+        if (self.sliced or self.merge) and self.backend == "ray":
+            raise SettingError("{backend} ray measures and scores in one run; {shard_index} and {merge} are for "
+                               "array jobs")
+        for name in ("merge", "learn", "false_alarm_rate"):
+            if self.sliced and getattr(self, name) not in (None, False):
+                raise SettingError(f"{{shard_index}} measures one slice; {{{name}}} goes with the {{merge}} run "
+                                   "after every slice" if name != "merge" else
+                                   "{shard_index} measures one slice; {merge} goes with the run after every slice")
+        if self.out is not None and not (self.sliced or self.merge):
+            raise SettingError("{out} is the folder of slice files: only with {shard_index} or {merge}")
+        if self.ray_address is not None and self.backend != "ray":
+            raise SettingError("{ray_address}: only with {backend} ray")
+
+
 def build_parser() -> OneLineParser:
     p = OneLineParser(prog="label-tool", description="Curate a generated head dataset.")
     sub = p.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
 
     a = sub.add_parser("auto", help="score every subject with automatic pre-flags (worst first)")
     a.add_argument("dataset", help="dataset folder (datagen sample --out)")
-    a.add_argument("--workers", type=int, default=1, help="processes that read and measure subjects")
+    add_options(a, AutoOptions)
     add_threads_option(a)
-    a.add_argument("--learn", metavar="LABELS",
-                   help="re-rank the unreviewed subjects with a classifier fitted on the verdicts in this folder of "
-                        "event logs (after about 20 or more verdicts with both good and bad ones)")
-    a.add_argument("--skip-incomplete", action="store_true",
-                   help="score the complete shards and list the others (default: a missing, incomplete or "
-                        "damaged shard is an error)")
-    a.add_argument("--false-alarm-rate", type=float, metavar="R",
-                   help="share of clean subjects the detectors together may flag, 0 <= R < 1 (default 0.03); the "
-                        "union is calibrated to it on this dataset. 0: every detector at its own threshold, "
-                        "uncalibrated")
-    a.add_argument("--top", type=int, default=10, metavar="N", help="print the N worst subjects")
-    a.add_argument("--quiet", action="store_true", help="no progress bar")
-    a.add_argument("--shard-index", type=int, metavar="K",
-                   help="array jobs: measure only the shards s with s %% N == K and write their records to a "
-                        "slice file (score them all with --merge once every slice is done)")
-    a.add_argument("--num-shards", type=int, metavar="N", help="array jobs: how many slices (with --shard-index)")
-    a.add_argument("--merge", action="store_true",
-                   help="score the whole dataset from the slice files of --shard-index/--num-shards jobs")
-    a.add_argument("--out", metavar="DIR", help="folder of the slice files (default: DATASET/preflags-slices)")
-    a.add_argument("--backend", default="local", choices=("local", "ray"),
-                   help="local processes (--workers), or one task per shard on a Ray cluster (this process scores)")
-    a.add_argument("--ray-address", metavar="ADDR",
-                   help="Ray cluster to use (default: RAY_ADDRESS, else a local Ray instance)")
 
     r = sub.add_parser("review", help="open the review window")
     r.add_argument("target", help="a dataset folder, or one shard-XXXXXX.tar in it")
@@ -106,22 +135,20 @@ def build_queue(target: str, queue: str):
              if shard_only is None or sh["name"] == shard_only]
     if shard_only is not None and not items:
         raise UserError(f"{target}: not a shard of the dataset in {path}")
-    from datagen.preflags import PREFLAGS_NAME, read_preflags
+    from datagen.preflags import read_review_queue
 
-    report = read_preflags(path) if (path / PREFLAGS_NAME).exists() else None
-    if report is None:
+    rows = read_review_queue(path)
+    if rows is None:
         if queue != "all":
             raise UserError(f"--queue {queue} needs pre-flags: run 'label-tool auto {path}' first")
         return path, items
-    scores = {r["subject"]: r for r in report["subjects"]}
+    scores = {r[0]: r for r in rows}
     for it in items:
         r = scores.get(it.subject)
         if r:
-            it.score = r["score"]
-            it.flags = tuple(sorted(((k, r["detectors"][k]["score"]) for k in r["flags"]), key=lambda f: -f[1]))
+            it.score, it.flags = r[1], tuple(map(tuple, r[3])) if r[3] else ()
     if queue in ("worst", "suspicious"):
-        rank = {r["subject"]: r.get("rank", r["score"]) for r in report["subjects"]}
-        items.sort(key=lambda it: -rank.get(it.subject, 0.0))
+        items.sort(key=lambda it: -scores[it.subject][2] if it.subject in scores else 0.0)
     if queue == "suspicious":
         items = [it for it in items if it.flags]
     return path, items
@@ -133,52 +160,36 @@ def _auto(args) -> int:
     optional_import("cv2", "faces")
     from .preflags import FALSE_ALARM_RATE, FLAG_AT, score_dataset
 
-    rate = FALSE_ALARM_RATE if args.false_alarm_rate is None else args.false_alarm_rate
-    if not 0 <= rate < 1:
-        raise UserError(f"--false-alarm-rate must be at least 0 and below 1, not {args.false_alarm_rate:g}")
-    if args.workers < 1:
-        raise UserError("--workers must be at least 1")
-    if args.top < 0:
-        raise UserError("--top must be at least 0")
-    sliced = args.shard_index is not None or args.num_shards is not None
-    if sliced and (args.shard_index is None or args.num_shards is None):
-        raise UserError("--shard-index and --num-shards go together")
-    if (sliced or args.merge) and args.backend == "ray":
-        raise UserError("--backend ray measures and scores in one run; --shard-index and --merge are for array jobs")
-    if sliced and (args.merge or args.learn or args.false_alarm_rate is not None):
-        given = "--merge" if args.merge else "--learn" if args.learn else "--false-alarm-rate"
-        raise UserError(f"--shard-index measures one slice; {given} goes with the --merge run after every slice")
-    if args.out is not None and not (sliced or args.merge):
-        raise UserError("--out is the folder of slice files: only with --shard-index or --merge")
-    if args.ray_address is not None and args.backend != "ray":
-        raise UserError("--ray-address: only with --backend ray")
-    if not args.merge:
+    opts = AutoOptions(**given(args, AutoOptions))
+    opts.check()
+    rate = FALSE_ALARM_RATE if opts.false_alarm_rate is None else opts.false_alarm_rate
+    if not opts.merge:
         from datagen.faces import check_dlib
         check_dlib()
-    if sliced:
+    if opts.sliced:
         from .preflags.slices import measure_slice
 
-        path, extracted = measure_slice(args.dataset, args.shard_index, args.num_shards, args.out, args.workers,
-                                        not args.quiet, skip_incomplete=args.skip_incomplete, threads=args.threads)
+        path, extracted = measure_slice(args.dataset, opts.shard_index, opts.num_shards, opts.out, opts.workers,
+                                        not opts.quiet, skip_incomplete=opts.skip_incomplete, threads=args.threads)
         skipped = extracted["skipped_shards"]
-        print(f"measured {len(extracted['records'])} subjects of slice {args.shard_index} of {args.num_shards} -> "
+        print(f"measured {len(extracted['records'])} subjects of slice {opts.shard_index} of {opts.num_shards} -> "
               f"{path}" + (f"; SKIPPED {len(skipped)} incomplete shard(s): {', '.join(skipped[:5])}"
                            if skipped else ""))
         print(f"once every slice is measured: label-tool auto {args.dataset} --merge"
-              + (f" --out {args.out}" if args.out else ""))
+              + (f" --out {opts.out}" if opts.out else ""))
         return 0
-    if args.merge:
+    if opts.merge:
         from .preflags.slices import merge_slices
 
-        report = merge_slices(args.dataset, args.out, labels=args.learn, false_alarm_rate=rate)
-    elif args.backend == "ray":
+        report = merge_slices(args.dataset, opts.out, labels=opts.learn, false_alarm_rate=rate)
+    elif opts.backend == "ray":
         from .preflags.cluster import score_on_ray
 
-        report = score_on_ray(args.dataset, args.ray_address, progress=not args.quiet,
-                              skip_incomplete=args.skip_incomplete, labels=args.learn, false_alarm_rate=rate)
+        report = score_on_ray(args.dataset, opts.ray_address, progress=not opts.quiet,
+                              skip_incomplete=opts.skip_incomplete, labels=opts.learn, false_alarm_rate=rate)
     else:
-        report = score_dataset(args.dataset, progress=not args.quiet, workers=args.workers,
-                               skip_incomplete=args.skip_incomplete, labels=args.learn, false_alarm_rate=rate,
+        report = score_dataset(args.dataset, progress=not opts.quiet, workers=opts.workers,
+                               skip_incomplete=opts.skip_incomplete, labels=opts.learn, false_alarm_rate=rate,
                                threads=args.threads)
     path = write_preflags(args.dataset, report)
     flagged = [r for r in report["subjects"] if r["flags"]]
@@ -193,7 +204,7 @@ def _auto(args) -> int:
                   else "each detector at its own threshold, uncalibrated")
     print(f"scored {len(report['subjects'])} subjects, {len(flagged)} flagged ({calibrated}) -> {path}"
           + (f"; SKIPPED {len(skipped)} incomplete shard(s): {', '.join(skipped[:5])}" if skipped else ""))
-    shown = report["subjects"][: args.top]
+    shown = report["subjects"][: opts.top]
     if shown:
         print(f"worst first; score = the subject's highest pre-flag score, 0 to 1 (flagged from {FLAG_AT:.2f}):")
     for r in shown:
@@ -298,7 +309,8 @@ COMMANDS = {"auto": _auto, "review": _review, "compile": _compile, "stats": _sta
 
 
 def main(argv=None) -> int:
-    return run_command("label-tool", COMMANDS, build_parser().parse_args(argv), "every verdict so far is saved")
+    parser = build_parser()
+    return run_command("label-tool", COMMANDS, parser.parse_args(argv), "every verdict so far is saved", parser)
 
 
 if __name__ == "__main__":

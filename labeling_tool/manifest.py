@@ -9,7 +9,7 @@ import re
 from datetime import datetime, timezone
 from pathlib import Path
 
-from datagen.errors import UserError
+from datagen.errors import SettingError, UserError
 from datagen.files import atomic_write
 from datagen.manifests import FORMAT, read_manifest
 from datagen.preflags import is_stale, read_preflags
@@ -51,11 +51,11 @@ def compile_manifest(dataset, labels_dir, policy: str = "any-bad", unreviewed: s
     with ``skip_unverified`` its subjects are rejected with the reason ``unverified_shard``.
     """
     if test_count is not None and test_count < 0:
-        raise UserError(f"--test-count must be 0 or more, not {test_count}")
+        raise SettingError(f"{{test_count}} must be 0 or more, not {test_count}")
     if policy not in POLICIES:
-        raise UserError(f"unknown policy {policy!r}; choose one of: {', '.join(POLICIES)}")
+        raise SettingError(f"{{policy}} {policy!r}: choose one of: {', '.join(POLICIES)}")
     if unreviewed not in UNREVIEWED:
-        raise UserError(f"--unreviewed must be one of: {', '.join(UNREVIEWED)}")
+        raise SettingError(f"{{unreviewed}} must be one of: {', '.join(UNREVIEWED)}")
     index = read_index(dataset)
     index_sha = index_sha256(dataset)
     unverified = shard_problems(dataset, index)
@@ -141,11 +141,11 @@ def flagged_subjects(dataset, required: bool) -> set[str] | None:
         report = read_preflags(dataset)
     except UserError as e:
         if required:
-            raise UserError(f"--unreviewed reject-flagged needs pre-flags: {e}") from None
+            raise SettingError(f"{{unreviewed}} reject-flagged needs pre-flags: {e}") from None
         return None
     if is_stale(dataset, report):
         if required:
-            raise UserError(f"--unreviewed reject-flagged: the pre-flags of {dataset} were made for another "
+            raise SettingError(f"{{unreviewed}} reject-flagged: the pre-flags of {dataset} were made for another "
                             f"index.json; run 'label-tool auto {dataset}' again")
         return None
     return {r["subject"] for r in report["subjects"] if r["flags"]}

@@ -19,12 +19,13 @@ import time
 from pathlib import Path
 
 from datagen.device import DEVICE_HELP
-from datagen.errors import OneLineParser, UserError, optional_import, run_command
+from datagen.command_line import OneLineParser, run_command
+from datagen.errors import UserError, optional_import
 from datagen.threads import add_option as add_threads_option
 from datagen.text import plural
 
 from .config import PATH_FIELDS, ModelConfig, TrainConfig
-from .options import add_options, at_least, describe, fixed_fields, given, shown, unit_interval
+from datagen.command_line import add_options, at_least, describe, fixed_fields, given, shown, unit_interval
 
 CROP_SIZE = 512  # px of the head crop handed to the model (its encoder resizes to its own input size)
 DEFAULT_CONFIG = "tiny"
@@ -262,10 +263,11 @@ def cmd_eval(args) -> int:
 
 def main(argv=None) -> int:
     started = time.monotonic()
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
     args.started = started
     commands = {"train": cmd_train, "infer": cmd_infer, "eval": cmd_eval}
-    return run_command("panolam", commands, args, INTERRUPTED[args.command])
+    return run_command("panolam", commands, args, INTERRUPTED[args.command], parser)
 
 
 if __name__ == "__main__":

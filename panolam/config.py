@@ -13,7 +13,7 @@ about one unit tall). Ablations (the paper's): ``coarse_to_fine=False`` regresse
 directly from the attention stack; ``triplane="point"`` queries the tri-plane at the point only;
 ``triplane="none"`` drops the branch.
 
-Fields made with :func:`panolam.options.setting` are also command-line options, with that help.
+Fields made with :func:`datagen.command_line.setting` are also command-line options, with that help.
 """
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Optional
 
-from .options import at_least, non_negative, path_fields, positive, setting, unit_interval
+from datagen.command_line import at_least, non_negative, path_fields, positive, setting, unit_interval
 
 TRIPLANE_MODES = ("rays", "point", "none")
 INPUT_VIEW_POLICIES = ("frontal", "any")

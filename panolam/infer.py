@@ -22,7 +22,7 @@ from PIL import Image
 
 from datagen.cameras import FOV_MEAN, HEAD360_PIVOT, RADIUS_MEAN, ViewSet, named_views
 from datagen.device import constant
-from datagen.errors import UserError, optional_import
+from datagen.errors import SettingError, UserError, optional_import
 from datagen.files import atomic_write
 from datagen.shards import to_uint8
 
@@ -136,8 +136,8 @@ def run(model: PanoLAM, image: np.ndarray, out_ply: Path | None, turntable: Path
     full, seconds = reconstruct(model, image)
     kept = prune(full, prune_opacity)
     if len(kept) == 0:
-        raise UserError(f"--prune-opacity {prune_opacity} removes every Gaussian (the most opaque has "
-                        f"{float(full.opacities.max()):.3f}); give a lower threshold")
+        raise SettingError(f"{{prune_opacity}} {prune_opacity} removes every Gaussian (the most opaque has "
+                           f"{float(full.opacities.max()):.3f}); give a lower threshold")
     views = turntable_views(frames)
     t0 = time.perf_counter()
     frames_full = render_set(full, views, resolution)

@@ -14,7 +14,8 @@ import sys
 from dataclasses import dataclass
 from typing import Optional
 
-from datagen.errors import UserError, os_error_line
+from datagen.command_line import flag_of
+from datagen.errors import SettingError, UserError, os_error_line
 from datagen.threads import choose, use
 
 from .config import ModelConfig, TrainConfig
@@ -56,8 +57,8 @@ def process_device(requested: str, local_rank: int, gpus: int) -> str:
     if kind != "cuda":
         return "cpu"
     if index:
-        raise UserError(f"--device {requested} names one GPU, but each of several processes takes the GPU of its "
-                        f"local rank; give --device cuda")
+        raise SettingError(f"{{device}} {requested} names one GPU, but each of several processes takes the GPU of its "
+                           "local rank; give {device} cuda")
     if local_rank >= gpus:
         raise UserError(f"process {local_rank} on this machine needs GPU {local_rank}, and it has {gpus}: start at "
                         f"most {gpus} processes per machine")
@@ -124,7 +125,8 @@ def _child(rank: int, world: int, port: int, job: Job) -> None:
     try:
         job.run(device)
     except (UserError, OSError) as e:
-        line = str(e) if isinstance(e, UserError) else os_error_line(e)
+        line = e.worded(flag_of) if isinstance(e, SettingError) else str(e) if isinstance(e, UserError) \
+            else os_error_line(e)
         if line is None:
             raise
         print(f"panolam train: error (process {rank}): {line}", file=sys.stderr)

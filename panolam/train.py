@@ -36,8 +36,9 @@ import torch
 import torch.distributed as dist
 import torch.nn.functional as F
 
+from datagen.command_line import progress_bar
 from datagen.device import constant
-from datagen.errors import UserError
+from datagen.errors import SettingError, UserError
 from datagen.files import sha256_file
 from datagen.manifests import read_manifest
 
@@ -225,7 +226,8 @@ def check_start(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, r
             raise UserError(f"{out}: the checkpoint was trained with config {state['model_config']['name']!r}; "
                             f"resume with the same config")
     elif (out / CHECKPOINT).exists():
-        raise UserError(f"{out} already holds a run; pass --resume to continue it or choose another --out")
+        raise SettingError(f"{out} already holds a run; pass "
+                           "{resume} to continue it or choose another {out}")
     dataset = TrainingSamples(data, manifest, "train", cfg.views_per_sample, cfg.render_resolution, cfg.seed,
                               input_resolution=model_cfg.image_size, input_views=cfg.input_views)
     data_info = training_data(dataset, manifest)
@@ -306,7 +308,8 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
         out.mkdir(parents=True, exist_ok=True)
         _log_text(out, f"perceptual loss: {perceptual.name}; {len(dataset)} training subjects; "
                        f"{world} process(es); start at step {step}")
-    bar = _progress(progress and rank == 0, step, cfg.steps)
+    shown = progress and rank == 0  # a progress bar, else each logged step echoed
+    bar = progress_bar(cfg.steps, "step", "train", shown, initial=step)
     clock = _Clock(started, cfg.time_limit_s)
     entry, start = {}, step
     model.train()
@@ -348,14 +351,13 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
         entry = {"step": step, "loss": loss_v, "lr": lr, "grad_norm": norm_v,
                  "seconds": time.perf_counter() - t0, "data_s": data_s, **dict(zip(parts, part_v))}
         history.append(entry)
-        if bar is not None:
-            bar.update(1)
-            bar.set_postfix(loss=f"{entry['loss']:.4f}", psnr=f"{entry['psnr_dense']:.2f}")
+        bar.update(1)
+        bar.set_postfix(loss=f"{entry['loss']:.4f}", psnr=f"{entry['psnr_dense']:.2f}")
         if writer is not None:
             logged = step % cfg.log_every == 0 or step == cfg.steps
             _log_text(out, f"step {step}: loss {entry['loss']:.4f}, PSNR {entry['psnr_dense']:.2f} dB, "
                            f"lr {entry['lr']:.2e}, {entry['seconds']:.2f} s/step, {data_s:.3f} s data",
-                      echo=logged and bar is None)
+                      echo=logged and not shown)
             if logged:
                 for k, v in entry.items():
                     if k != "step":
@@ -370,11 +372,10 @@ def train(data, manifest, model_cfg: ModelConfig, cfg: TrainConfig, out, resume:
         if stop:
             if out_of_time and rank == 0:
                 _log_text(out, f"stopped at step {step}: another step would end after the {cfg.time_limit_s:g} s "
-                               f"time limit; --resume continues", echo=bar is None)
+                               f"time limit; --resume continues", echo=not shown)
             break
         ready = time.perf_counter()
-    if bar is not None:
-        bar.close()
+    bar.close()
     if writer is not None:
         writer.close()
     return entry
@@ -470,8 +471,3 @@ def _log_text(out: Path, line: str, echo: bool = True) -> None:
         print(line, flush=True)
 
 
-def _progress(enabled: bool, start: int, total: int):
-    if not enabled:
-        return None
-    from tqdm import tqdm
-    return tqdm(total=total, initial=start, desc="train", dynamic_ncols=True)

@@ -28,7 +28,13 @@ def run(argv, capsys):
     (["sample", "--out", "{tmp}/x", "--gan", "eg3d"], "needs --checkpoint PATH: EG3D checkpoints"),
     (["sample", "--out", "{tmp}/x", "--gan", "spherehead", "--checkpoint", "{tmp}/none.pkl"], "checkpoint not found"),
     (["sample", "--out", "{tmp}/x", "--gan", "eg3d", "--checkpoint", "{tmp}/afile"], "not a readable generator"),
-    (["sample", "--out", "{tmp}/x", "--save-planes", "32"], "procedural generator has no planes"),
+    (["sample", "--out", "{tmp}/x", "--save-planes", "32"], "--save-planes: only for the GAN generators"),
+    (["sample", "--out", "{tmp}/x", "--subject", "2"], "unrecognized arguments: --subject 2 (did you mean --subjects?)"),
+    (["sample", "--out", "{tmp}/x", "--sub", "2"], "unrecognized arguments: --sub 2"),
+    (["sample", "--out", "{tmp}/x", "--device", "cpu"], "--device: only for the GAN generators"),
+    (["sample", "--out", "{tmp}/x", "--gan", "eg3d", "--checkpoint", "{tmp}/afile", "--truncation", "3"],
+     "--truncation must be between 0 and 2"),
+    (["sample", "--out", "{tmp}/x", "--shape-level", "5"], "--shape-level: only with --save-shape"),
     (["sample", "--out", "{tmp}/x", "--gan", "procedural", "--background", "own"], "white, black, grey"),
     (["sample", "--out", "{tmp}/x", "--protocol", "sideways"], "invalid choice: 'sideways'"),
     (["sample", "--out", "{tmp}/x", "--subjects", "0"], "--subjects must be at least 1"),
@@ -41,8 +47,9 @@ def run(argv, capsys):
     (["sample", "--out", "{tmp}/x", "--defect-severity", "0.8,0.2"], "--defect-severity must be LO,HI"),
     (["sample", "--out", "{tmp}/x", "--defect-severity", "high"], "--defect-severity must be LO,HI"),
     (["sample", "--out", "{tmp}/x", "--background", "purple"], "white, black, grey"),
-    (["sample", "--out", "{tmp}/x", "--truncation", "-1"], "--truncation"),
-    (["sample", "--out", "{tmp}/x", "--truncation-cutoff", "-2"], "--truncation-cutoff must be at least 0"),
+    (["sample", "--out", "{tmp}/x", "--truncation", "-1"], "--truncation: only for the GAN generators"),
+    (["sample", "--out", "{tmp}/x", "--gan", "eg3d", "--checkpoint", "{tmp}/afile", "--truncation-cutoff", "-2"],
+     "--truncation-cutoff must be at least 0"),
     (["sample", "--out", "{tmp}/afile/sub"], "cannot write"),
     (["sample", "--out", "/proc/forbidden"], "cannot write"),
     (["verify", "{tmp}/nothing-here"], "no dataset index"),
@@ -142,12 +149,11 @@ def test_disk_full_is_one_line_and_leaves_nothing_complete(tmp_path, capsys, mon
 @pytest.fixture
 def fast_cli(monkeypatch):
     """`datagen sample` with the tests' fast procedural grid (tiny_spec's), so its arguments below name tiny_dataset."""
-    import datagen.pipeline as pipeline
+    import datagen.cli as cli
     from tests.conftest import FAST_PROCEDURAL
 
-    job = pipeline.JobSpec
-    monkeypatch.setattr(pipeline, "JobSpec", lambda generator_options, **kw: job(
-        generator_options={**FAST_PROCEDURAL, **generator_options}, **kw))
+    monkeypatch.setattr(cli, "generator_options", lambda args, given=cli.generator_options: {
+        **FAST_PROCEDURAL, **given(args)})
     return ["sample", "--protocol", "360", "--subjects", "3", "--resolution", "32", "--views", "4", "--seed", "7",
             "--shard-size", "2", "--quiet", "--out"]
 
@@ -202,3 +208,35 @@ def test_every_option_of_every_subcommand_has_help(command):
     missing = [f"{name} {a.option_strings[0] if a.option_strings else a.dest}"
                for name, sub in commands.items() for a in sub._actions if not a.help]
     assert missing == []
+
+
+def test_the_library_names_settings_and_the_command_line_names_flags(tmp_path, capsys):
+    from datagen.errors import SettingError
+    from datagen.generators.settings import GANConfig, ProceduralConfig
+    from datagen.job import JobSpec
+
+    with pytest.raises(SettingError) as bad:
+        JobSpec(out=str(tmp_path), shard_size=0).check()
+    assert str(bad.value) == "shard_size must be at least 1"
+    with pytest.raises(SettingError, match=r"^defect_severity must be LO,HI"):
+        ProceduralConfig(defect_severity=(0.9, 0.1))
+    with pytest.raises(SettingError, match=r"^truncation_psi must be between 0 and 2"):
+        GANConfig(truncation_psi=3.0)
+    # The command line words the same errors with its own flags (--truncation for truncation_psi).
+    code, _, err = run(["sample", "--out", str(tmp_path / "x"), "--shard-size", "0"], capsys)
+    assert code == 2 and err.strip() == "datagen sample: error: --shard-size must be at least 1"
+    assert not (tmp_path / "x").exists()
+
+
+def test_generator_settings_given_on_the_command_line_reach_the_generator(monkeypatch, tmp_path):
+    from datagen import pipeline
+
+    seen = []
+    monkeypatch.setattr(pipeline, "run_sample", lambda spec, **kw: seen.append(spec) or
+                        {"shards_written": 1, "shards_skipped": 0, "subjects": 1, "images": 1, "seconds": 1.0})
+    assert main(["sample", "--out", str(tmp_path / "x"), "--subjects", "3", "--defect-types", "janus,haze",
+                 "--defect-severity", "0.2,0.5", "--background", "grey", "--quiet"]) == 0
+    spec = seen[0]
+    assert (spec.subjects, spec.resolution) == (3, 128)
+    assert spec.generator_options == {"defect_types": ("janus", "haze"), "defect_severity": (0.2, 0.5),
+                                      "background": (0.5, 0.5, 0.5)}

@@ -160,8 +160,8 @@ def test_verify_reports_a_missing_sidecar(tiny_dataset, tmp_path):
 def test_rerun_of_a_partly_done_job_without_resume_is_refused(tiny_dataset, tmp_path):
     ds = copy_dataset(tiny_dataset, tmp_path / "ds")
     (ds / "shard-000001.json").unlink()
-    with pytest.raises(UserError, match="--resume"):
-        run_sample(tiny_spec(ds), progress=False)
+    with pytest.raises(UserError, match="pass resume to continue, or choose another out"):
+        run_sample(tiny_spec(ds), progress=False)  # the command line words them --resume, --out
 
 
 def test_resuming_a_complete_dataset_with_workers_does_nothing(tiny_dataset):

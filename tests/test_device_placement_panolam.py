@@ -241,7 +241,7 @@ def test_a_checkpoint_written_from_a_gpu_resumes_on_a_machine_without_one(data, 
 # -- processes -------------------------------------------------------------------------------------------------
 def test_each_process_takes_the_gpu_of_its_local_rank():
     assert process_device("cuda", 1, gpus=2) == "cuda:1" and process_device("cpu", 3, gpus=0) == "cpu"
-    with pytest.raises(UserError, match="give --device cuda"):
+    with pytest.raises(UserError, match="give device cuda"):  # the command line words it --device
         process_device("cuda:1", 0, gpus=2)
     with pytest.raises(UserError, match="needs GPU 2, and it has 2"):
         process_device("cuda", 2, gpus=2)

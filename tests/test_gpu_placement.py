@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from datagen import pipeline, threads
+from datagen.command_line import SilentBar
 from datagen.cli import main
 from datagen.device import ray_task_device, worker_devices
 from datagen.errors import UserError
@@ -143,20 +144,20 @@ def recorded(monkeypatch):
 
 
 def test_each_local_worker_renders_its_shards_on_its_own_gpu(tmp_path, recorded):
-    pipeline._run_local(gan_spec(tmp_path, device="cuda"), [0, 1, 2, 3], ["cuda:0", "cuda:1"], pipeline._NullBar())
+    pipeline._run_local(gan_spec(tmp_path, device="cuda"), [0, 1, 2, 3], ["cuda:0", "cuda:1"], SilentBar())
     assert recorded["current"] == ["cuda:0", "cuda:1"]  # one worker per GPU, each on its own
     assert recorded["shards"] == {0: "cuda:0", 1: "cuda:1", 2: "cuda:0", 3: "cuda:1"}
     assert recorded["threads"] == [4, 4]  # the CPU cores divided by the workers, as for CPU work
 
 
 def test_a_single_worker_renders_here_on_its_device(tmp_path, recorded):
-    pipeline._run_local(gan_spec(tmp_path), [0, 1], ["cuda:1"], pipeline._NullBar())
+    pipeline._run_local(gan_spec(tmp_path), [0, 1], ["cuda:1"], SilentBar())
     assert recorded["shards"] == {0: "cuda:1", 1: "cuda:1"}
     assert recorded["current"] == [] and recorded["threads"] == []  # this process is left as it is
 
 
 def test_cpu_workers_stay_on_the_cpu(tmp_path, recorded):
-    pipeline._run_local(tiny_spec(tmp_path), [0, 1], ["cpu", "cpu"], pipeline._NullBar())
+    pipeline._run_local(tiny_spec(tmp_path), [0, 1], ["cpu", "cpu"], SilentBar())
     assert recorded["shards"] == {0: None, 1: None}  # the procedural generator takes no device
     assert recorded["current"] == []
 
@@ -188,14 +189,15 @@ def test_auto_workers_on_the_cpu_are_the_cores_up_to_the_shard_count(tmp_path, m
 
 
 @pytest.mark.parametrize("kwargs, message", [
-    ({"gpus_per_task": 1}, "--gpus-per-task: only for --backend ray"),
-    ({"backend": "ray", "gpus_per_task": 0}, "--gpus-per-task must be above 0 and at most 1"),
-    ({"backend": "ray", "gpus_per_task": 2}, "--gpus-per-task must be above 0 and at most 1"),
+    ({"gpus_per_task": 1}, "gpus_per_task: only for backend ray"),
+    ({"backend": "ray", "gpus_per_task": 0}, "gpus_per_task must be above 0 and at most 1"),
+    ({"backend": "ray", "gpus_per_task": 2}, "gpus_per_task must be above 0 and at most 1"),
     ({"backend": "ray", "gpus_per_task": 0.5, "device": "cpu"}, "the device is the CPU"),
-    ({"backend": "ray", "device": "cuda:1"}, "--device cuda:1 pins a GPU of this machine"),
-    ({"workers": 0}, "--workers must be auto or at least 1"),
+    ({"backend": "ray", "device": "cuda:1"}, "device cuda:1 pins a GPU of this machine; with backend ray"),
+    ({"workers": 0}, "workers must be auto or at least 1"),
 ])
 def test_impossible_placements_are_refused_before_anything_is_written(gpus, tmp_path, kwargs, message):
+    """(The library names settings; the command line words them as flags, tested below.)"""
     gpus(2)
     device = kwargs.pop("device", "cuda")
     with pytest.raises(UserError, match=message):

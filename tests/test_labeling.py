@@ -80,7 +80,7 @@ def test_navigation_and_next_unreviewed(app_factory):
 def test_default_vtk_and_pyvista_keys_do_not_fire(app_factory):
     app = app_factory()
     app.press("v")
-    surface = app._surface
+    surface = app.surface.actor
     for k in ["w", "q", "e", "f", "plus", "Up"]:  # VTK's own keys ("3": stereo) do nothing; "3" is a verdict here
         app.press(k)
     assert surface.GetProperty().GetRepresentation() == 2  # still surface, not wireframe
@@ -100,19 +100,19 @@ def test_screenshot_is_not_blank_and_hud_shows_state(app_factory):
 def test_help_and_3d_toggles(app_factory):
     app = app_factory()
     app.press("h")
-    assert app.show_help and app._help.visible()
+    assert app.show_help and app.help_layer.visible()
     app.press("h")
-    assert not app._help.visible()
+    assert not app.help_layer.visible()
     app.press("v")
-    assert app.mode == "3d" and app._surface is not None and not app._grid.visible()
+    assert app.mode == "3d" and app.surface.actor is not None and not app.grid_layer.visible()
     assert app.screenshot().std() > 5
     app.press("v")
-    assert app.mode == "review" and app._surface is None and app._grid.visible()
+    assert app.mode == "review" and app.surface.actor is None and app.grid_layer.visible()
 
 
 def test_triage_marks_and_commits_a_page(app_factory, tmp_path):
     app = app_factory(start_in_triage=True)
-    assert app.mode == "triage" and len(app._page_thumbs) == 3
+    assert app.mode == "triage" and len(app.triage.page.thumbs) == 3
     app.press("Right")
     app.press("1")          # subject 1 bad (multiple faces); the cursor stays
     assert app.triage_cursor == 1
@@ -341,6 +341,21 @@ def event_line(**fields) -> str:
 def test_parse_event_checks_every_field(line, message):
     with pytest.raises(ValueError, match=message):
         parse_event(line, "alice")
+    from datagen.events import _common_event
+    assert _common_event(line.encode(), "alice") is None  # the fast reader leaves every problem to parse_event
+
+
+@pytest.mark.parametrize("line", [
+    event_line(), event_line(action="bad", reasons=["back", "blur"]), event_line(action="skip", reasons="<absent>"),
+    event_line(action="undo", seq=7), json.dumps({"seq": 2, "time": "t", "reviewer": "alice", "subject": "s",
+                                                    "shard": "shard-000001", "action": "good", "extra": 1}),
+    event_line() + "  ", " " + event_line(), event_line(subject="subj\u00e9"),
+])
+def test_the_fast_event_reader_reads_what_parse_event_reads(line):
+    from datagen.events import _common_event
+    fast = _common_event(line.encode(), "alice")
+    assert fast is None or fast == parse_event(line, "alice")
+    assert line != event_line() or fast is not None  # the form the log writes takes the fast path
 
 
 def test_older_lines_without_reasons_are_read():

@@ -13,7 +13,7 @@ import pytest
 from panolam import cli
 from panolam.config import ModelConfig, TrainConfig
 from panolam.infer import write_all
-from panolam.options import flag, option_fields, unit_interval
+from datagen.command_line import flag, option_fields, unit_interval
 
 
 def _fresh(code: str) -> str:
@@ -204,7 +204,7 @@ def test_an_unknown_device_is_one_line(command, device, message, capsys):
 ])
 def test_os_errors_naming_a_file_are_one_line(error, line, capsys):
     from types import SimpleNamespace
-    from datagen.errors import run_command
+    from datagen.command_line import run_command
 
     def command(args):
         raise error

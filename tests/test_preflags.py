@@ -671,6 +671,39 @@ def test_eye_pair_where_a_face_has_its_eyes():
     assert flag.score >= 0.5 and "a pair of eyes on v04 (3 detections each" in flag.why
 
 
+def test_cnn_runs_only_where_the_cheap_face_cues_see_something():
+    """face_like opens on any HOG response above its floor or any eye pair; a record whose CNN was not run
+    scores as one where the CNN found nothing, and its explanation says the CNN was not run."""
+    from labeling_tool.preflags.janus import NO_FACE, Janus, face_like
+
+    assert not face_like({3: NO_FACE, 4: NO_FACE, 5: NO_FACE}, 0) and not face_like({}, 0)
+    assert face_like({3: NO_FACE, 4: -0.95}, 0) and face_like({4: NO_FACE}, 1)
+    base = {"sim": (0.10, 0.05), "colour": (0.20, 0.05), "relief": (math.log(1e-4), 0.5)}
+    record = {"back": 4, "front": 0, "sim": 0.30, "colour": 0.20, "relief": 1e-4, "faces": {4: NO_FACE}, "eyes": 0}
+    skipped, empty = Janus().score(dict(record, cnn=None), base, 0, []), Janus().score(dict(record, cnn=NO_FACE), base, 0, [])
+    assert (skipped.score, skipped.value, skipped.ratio) == (empty.score, empty.value, empty.ratio) and skipped.score > 0
+    assert "CNN not run" in skipped.why and "none by the CNN" in empty.why
+
+
+def test_opencv_masks_match_scipys():
+    """fill_holes and farther_than (OpenCV's labelling and exact distance transform) give scipy's results,
+    regions touching the image's edge included; farther_than at the radii the haze detector uses (3 px at
+    64 px for 96 to 512 px) and at a radius between pixels."""
+    from labeling_tool.preflags.imaging import farther_than, fill_holes
+
+    rng = np.random.default_rng(3)
+    for _ in range(40):
+        h, w = rng.integers(8, 120, 2)
+        region = ndi.gaussian_filter(rng.random((h, w)), 2.0) > 0.52
+        assert np.array_equal(fill_holes(region), ndi.binary_fill_holes(region))
+        if not region.any():
+            continue
+        candidates = rng.random((h, w)) < 0.8
+        for r in (4.5, 6.0, 12.0, 24.0, 2.3):
+            want = candidates & (ndi.distance_transform_edt(~region) > r)
+            assert np.array_equal(farther_than(region, candidates, r), want)
+
+
 def test_back_diagonal_views_need_a_full_face_detection():
     """On the back view a partial face (HOG -0.2) flags; on a back-diagonal view, where the real face's
     cheek and nose show at the edge, the same score does not, and a full detection (0.3) does."""
@@ -906,6 +939,26 @@ def test_write_read_atomic(synthetic_dataset, tmp_path, monkeypatch):
     assert report_format.read_preflags(root, path=other)["subjects"] == report_format.read_preflags(root)["subjects"]
     (root / "index.json").write_text((root / "index.json").read_text() + " ")
     assert report_format.is_stale(root, report)
+
+
+def test_the_review_queue_file_is_the_reports_and_only_while_the_report_is_unchanged(synthetic_dataset, tmp_path):
+    root = tmp_path / "ds"
+    shutil.copytree(synthetic_dataset, root)
+    report = preflags.score_dataset(root)
+    report["subjects"][0]["rank"] = 0.123  # a learned rank, where --learn gave one
+    report_format.write_preflags(root, report)
+    rows = json.loads((root / "preflags-queue.json").read_text())["subjects"]
+    assert rows == json.loads(json.dumps(report_format.queue_rows(report)))
+    assert report_format.read_review_queue(root) == rows and rows[0][2] == 0.123
+    flagged = next(r for r in report["subjects"] if len(r["flags"]) >= 1)
+    row = next(r for r in rows if r[0] == flagged["subject"])
+    assert [k for k, _ in row[3]] == sorted(flagged["flags"], key=lambda k: -flagged["detectors"][k]["score"])
+    # The report rewritten without its queue (another writer): the queue is not used, the report is read.
+    changed = dict(report, subjects=report["subjects"][1:])
+    report_format.write_preflags(root, changed, path=root / "preflags.json")
+    assert report_format.read_review_queue(root) == json.loads(json.dumps(report_format.queue_rows(changed)))
+    (root / "preflags.json").unlink()
+    assert report_format.read_review_queue(root) is None
 
 
 def test_procedural_dataset_end_to_end(tmp_path):

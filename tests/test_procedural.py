@@ -390,12 +390,12 @@ def test_sexes_differ_in_face_shape_and_brows_stay_visible():
 
 
 def test_age_brings_nasolabial_folds_and_forehead_lines():
-    from datagen.generators.procedural.anatomy import _anchors_of, _skin_rgb
+    from datagen.generators.procedural.anatomy import anchors_of, skin_colour
 
     young = first_params(lambda p: p["facial_hair"] == "none" and not p["makeup"])
     old = dict(young, age=80.0)
     young = dict(young, age=18.0)
-    A = _anchors_of(young)
+    A = anchors_of(young)
     tip_y = young["eye_height"] - young["nose_length"] + young["nose_tilt"]
     mw, nw, my = young["mouth_width"], young["nose_width"], young["mouth_y"]
     fold = (0.25 * (nw + 0.006) + 0.5 * (mw + 0.032) + 0.25 * (mw + 0.012),  # the fold's middle
@@ -403,4 +403,4 @@ def test_age_brings_nasolabial_folds_and_forehead_lines():
     forehead = (0.0, young["eye_height"] + young["brow_height"] + 0.035)
     for (x, y), ratio in ((fold, 0.8), (forehead, 0.93)):
         p = torch.tensor([[x, y, 0.3]])
-        assert _skin_rgb(p, old, A).mean() < ratio * _skin_rgb(p, young, A).mean()
+        assert skin_colour(p, old, A).mean() < ratio * skin_colour(p, young, A).mean()

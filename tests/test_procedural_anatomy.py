@@ -12,8 +12,8 @@ from datagen.cameras import ViewSet
 from datagen.generators.base import STREAM_LATENT, Subject, subject_rng
 from datagen.generators.procedural import (BOX, HEAD_SCALE, ProceduralConfig, ProceduralHeads, bake_head, head_field,
                                            sample_params)
-from datagen.generators.procedural.anatomy import _anchors_of, _cranium
-from datagen.generators.procedural.hair import _hair
+from datagen.generators.procedural.anatomy import anchors_of, cranium
+from datagen.generators.procedural.hair import hair_field
 
 GEN = ProceduralHeads(ProceduralConfig(grid_resolution=96, defect_rate=0.0))
 NOSE = ("nose_length", "nose_projection", "nose_tilt", "nose_tip", "nose_width")
@@ -70,7 +70,7 @@ def test_the_nose_is_closed_underneath_at_the_ends_of_every_range(ranges):
         for corner in itertools.product(*((0, 1),) * len(NOSE)):
             P = dict(base, nose_bridge=ranges["nose_bridge"][0], nose_hump=1.0,
                      **{k: ranges[k][c] for k, c in zip(NOSE, corner)})
-            A = _anchors_of(P)
+            A = anchors_of(P)
             E, L = P["eye_height"], P["nose_length"]
             nasion = np.array([0.0, E + 0.005, A["nasion"] - 0.01])
             tip = np.array([0.0, E - L + P["nose_tilt"], A["nose"] + P["nose_projection"] - P["nose_tip"]])
@@ -94,12 +94,12 @@ def test_a_ponytail_lies_on_the_head_and_neck_down_to_its_end(ranges):
     z = torch.linspace(-0.6, 0.0, 601)
     for base, length in itertools.product(people(4), ranges["hair_length"]):
         P = dict(base, hair_style="ponytail", hair_length=length, cap=False)
-        A = _anchors_of(P)
-        for y in np.linspace(_cranium(P)[0][1] + 0.05, length + 0.01, 12):
+        A = anchors_of(P)
+        for y in np.linspace(cranium(P)[0][1] + 0.05, length + 0.01, 12):
             pts = torch.stack([torch.zeros_like(z), torch.full_like(z, float(y)), z], dim=-1)
             inside = (sdf(pts, P) < 0).to(torch.int8)
             assert int((inside[1:] != inside[:-1]).sum()) == 1, (length, float(y))
-            assert (_hair(pts, P, A) < 0).any(), (length, float(y))
+            assert (hair_field(pts, P, A) < 0).any(), (length, float(y))
 
 
 def test_a_ponytail_is_one_silhouette_without_gaps(ranges):

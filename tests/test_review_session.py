@@ -192,7 +192,7 @@ def test_verdict_keys_work_in_the_3d_view(tiny_dataset, tmp_path):
             app.press("v")
             assert app.mode == "3d"
             app.press(key)
-            assert app.mode == "review" and app._surface is None and app.notice[0] == "saved"
+            assert app.mode == "review" and app.surface.actor is None and app.notice[0] == "saved"
         app.press("v")
         app.press("g")                         # the last subject: it stays in 3D and says so
         assert app.mode == "3d" and "last subject" in app.notice[1]

@@ -208,7 +208,7 @@ def test_u_with_nothing_left_to_review_says_so_and_stays(make_app, tmp_path):
     assert app.pos == 1 and app.notice == ("warn", "all 3 subjects of this queue are reviewed: no unreviewed "
                                                    "subject left")
     press(app, "v u")                        # in the 3D view too: the head stays
-    assert (app.mode, app.pos) == ("3d", 1) and app._surface is not None and app.notice[0] == "warn"
+    assert (app.mode, app.pos) == ("3d", 1) and app.surface.actor is not None and app.notice[0] == "warn"
     assert len(written(tmp_path)) == 4
 
 
@@ -262,20 +262,20 @@ def test_confirmation_labels_and_help_panel(make_app):
     assert app.notice == ("saved", f"saved: {S0} bad: blur")
     assert app.hud_lines[2][0] == f"saved: {S0} bad: blur"
     shot = app.screenshot()
-    assert (np.abs(shot[app._layout.top // 2:app._layout.top].astype(int) - BACKGROUND).sum(-1) > 150).sum() > 200
-    layout = app._layout
+    assert (np.abs(shot[app.layout.top // 2:app.layout.top].astype(int) - BACKGROUND).sum(-1) > 150).sum() > 200
+    layout = app.layout
     x0, y0, x1, y1 = layout.image_box(0)
     label = shot[y1 + 3:y1 + 3 + layout.label_font + 4, x0 - 4:x1]   # the view label under cell 0
     assert (np.abs(label.astype(int) - BACKGROUND).sum(-1) > 150).sum() > 20
     press(app, "h")
-    assert app._help.visible()
-    x0, y0 = app._help_origin                # an opaque dark panel over the views
+    assert app.help_layer.visible()
+    x0, y0 = app.help_origin                # an opaque dark panel over the views
     panel = app.screenshot()[y0 + 5:y0 + 20, x0 + 5:x0 + 300].astype(int)   # above the first heading
     assert panel.std(axis=(0, 1)).max() < 1 and panel.mean() < 30
     keys = {k for k, _ in HELP}
     assert {"Return", "z", "space / click", "Escape"} <= keys
     press(app, "Escape")                     # Escape closes the help first
-    assert not app.closed and not app.show_help and not app._help.visible()
+    assert not app.closed and not app.show_help and not app.help_layer.visible()
 
 
 def ink(img: np.ndarray) -> np.ndarray | None:
@@ -297,7 +297,7 @@ def test_view_labels_name_yaw_and_pitch(make_app, tiny_dataset):
     _, fields = next(iter_tar_samples(Path(tiny_dataset) / "shard-000000.tar"))   # read apart from the window
     views = json.loads(fields["json"])["views"]
     assert len(views) == 4
-    shot, layout = app.screenshot(), app._layout
+    shot, layout = app.screenshot(), app.layout
     for i, v in enumerate(views):
         x0, y0, x1, y1 = layout.image_box(i)
         sx, _ = layout.slot(i)
@@ -436,15 +436,15 @@ def test_a_delayed_job_is_made_only_if_still_wanted_or_needed():
 def test_3d_view_is_a_surface_framed_on_the_head(make_app):
     app = make_app(window_size=(640, 480))
     press(app, "v")
-    assert app.mode == "3d" and app._surface.GetMapper().GetInput().GetNumberOfPolys() > 100
+    assert app.mode == "3d" and app.surface.actor.GetMapper().GetInput().GetNumberOfPolys() > 100
     img = app.screenshot()
     obj = np.abs(img.astype(int) - BACKGROUND).sum(-1) > 40
-    obj[:app._layout.top] = False            # the heads-up text
+    obj[:app.layout.top] = False            # the heads-up text
     rows, cols = np.nonzero(obj)
     assert rows.max() - rows.min() > 0.4 * 480 and abs((cols.min() + cols.max()) / 2 - 320) < 60
     assert "drag rotates" in app.hud_lines[3][0]
     press(app, "Right")                      # moving on leaves the 3D view
-    assert app.mode == "review" and app.pos == 1 and app._surface is None
+    assert app.mode == "review" and app.pos == 1 and app.surface.actor is None
 
 
 def test_3d_view_shows_the_stored_mesh_when_there_is_one(make_app, tmp_path_factory):
@@ -456,7 +456,7 @@ def test_3d_view_shows_the_stored_mesh_when_there_is_one(make_app, tmp_path_fact
     stored = decode_mesh(fields[SHAPE_FIELD], S0)
     app = make_app(dataset=shaped, window_size=(640, 480))
     press(app, "v")
-    shown = app._surface.GetMapper().GetInput()
+    shown = app.surface.actor.GetMapper().GetInput()
     assert app.mode == "3d" and shown.GetNumberOfPoints() == len(stored.vertices)
     assert shown.GetNumberOfPolys() == len(stored.faces)
     assert np.allclose(pyvista.wrap(shown).points, stored.vertices)
@@ -473,19 +473,19 @@ def test_verdicts_and_undo_typed_in_the_3d_view(make_app, tmp_path):
     subject whose verdict it cancels."""
     app = make_app(window_size=(640, 480))
     press(app, "v")
-    top = app._layout.top                    # the heads-up block above, the head below
+    top = app.layout.top                    # the heads-up block above, the head below
     head = app.screenshot()
     press(app, "z")
-    assert app.mode == "3d" and app._surface is not None and app.notice == ("warn", "nothing to undo")
+    assert app.mode == "3d" and app.surface.actor is not None and app.notice == ("warn", "nothing to undo")
     shot = app.screenshot()
     assert np.array_equal(shot[top:], head[top:])                 # the head, as it was
     assert (np.abs(head[top:].astype(int) - BACKGROUND).sum(-1) > 40).mean() > 0.05
     assert (np.abs(shot[:top].astype(int) - head[:top]).sum(-1) > 30).sum() > 50   # the notice, redrawn
     press(app, "2")
     assert written(tmp_path) == [(S0, "bad", ("broken_back",))]
-    assert (app.mode, app.pos, app._surface, app._grid.visible()) == ("review", 1, None, True)
+    assert (app.mode, app.pos, app.surface.actor, app.grid_layer.visible()) == ("review", 1, None, True)
     press(app, "v z")
-    assert written(tmp_path)[-1] == (S0, "undo", ()) and (app.mode, app.pos, app._grid.visible()) == ("review", 0, True)
+    assert written(tmp_path)[-1] == (S0, "undo", ()) and (app.mode, app.pos, app.grid_layer.visible()) == ("review", 0, True)
     press(app, "Right Right v g")            # the last subject: saved, and its head stays on screen
     assert written(tmp_path)[-1] == (S2, "good", ()) and app.mode == "3d" and app.notice[0] == "saved"
     assert (np.abs(app.screenshot()[top:].astype(int) - BACKGROUND).sum(-1) > 40).mean() > 0.05

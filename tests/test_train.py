@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from datagen.errors import DatasetError
+from datagen.errors import DatasetError, SettingError
 from datagen.manifests import read_manifest
 from panolam import train as train_module
 from panolam.data import TrainingSamples, collate
@@ -166,8 +166,8 @@ def test_existing_run_needs_resume(curated, tmp_path):
     data, manifest = curated
     one = dataclasses.replace(FAST, steps=1)
     train(data, manifest, MODEL, one, tmp_path / "r", progress=False)
-    with pytest.raises(Exception, match="--resume"):
-        train(data, manifest, MODEL, one, tmp_path / "r", progress=False)
+    with pytest.raises(SettingError, match="already holds a run; pass resume to continue it or choose another out"):
+        train(data, manifest, MODEL, one, tmp_path / "r", progress=False)  # the command line says --resume, --out
 
 
 def test_non_finite_loss_names_step_and_subjects(curated, tmp_path, monkeypatch):
@@ -370,7 +370,8 @@ def test_nproc_mistakes_are_one_line_before_any_process_starts(curated, tmp_path
     run = tmp_path / "run"
     train(data, manifest, MODEL, dataclasses.replace(FAST, steps=1), run, progress=False)
     r = _cli("train", "--data", data, "--manifest", manifest, "--out", run, "--nproc", "2")
-    assert r.returncode == 2 and "already holds a run" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
+    assert "already holds a run; pass --resume to continue it or choose another --out" in r.stderr
 
 
 @pytest.mark.parametrize("argv, message", [

@@ -9,6 +9,11 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
+# 'auto': the originals' float16 blocks (super-resolution, and any backbone blocks the checkpoint
+# marks fp16) run in float16 on CUDA and in float32 elsewhere, as in the originals; 'fp16' forces
+# them to float16 on any device; 'fp32' never uses float16.
+PRECISIONS = ("auto", "fp16", "fp32")
+
 
 @dataclass(frozen=True)
 class GANKind:

@@ -32,10 +32,6 @@ from .networks import (Conv2dLayer, FullyConnectedLayer, MappingNetwork, StyleGA
                        SynthesisNetwork, ToRGBLayer)
 
 TRIPLANE_CROP = 0.1
-# 'auto': the originals' float16 blocks (super-resolution, and any backbone blocks the checkpoint
-# marks fp16) run in float16 on CUDA and in float32 elsewhere, as in the originals; 'fp16' forces
-# them to float16 on any device; 'fp32' never uses float16.
-PRECISIONS = ("auto", "fp16", "fp32")
 
 
 class OSGDecoder(nn.Module):

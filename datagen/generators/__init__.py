@@ -1,7 +1,7 @@
 """Generator registry: names accepted by ``datagen sample --gan``."""
 from __future__ import annotations
 
-from ..errors import UserError
+from ..errors import SettingError, UserError
 from ..gans.kinds import GAN_KINDS, KINDS
 from .base import Generator
 
@@ -16,20 +16,20 @@ def make_generator(name: str, checkpoint: str | None = None, options: dict | Non
         from .procedural import ProceduralConfig, ProceduralHeads
 
         if checkpoint:
-            raise UserError("the procedural generator takes no --checkpoint")
+            raise SettingError("the procedural generator takes no {checkpoint}")
         known = ProceduralConfig.__dataclass_fields__
         unknown = sorted(set(options) - set(known))
         if unknown:
             raise UserError(f"unknown procedural option(s): {', '.join(unknown)}")
         for key in ("background", "defect_types", "defect_severity"):
-            if key in options:
+            if isinstance(options.get(key), list):  # as JSON has it
                 options[key] = tuple(options[key])
         return ProceduralHeads(ProceduralConfig(**options))
     if name in GAN_KINDS:
         from .gan import GANConfig, GANHeads
 
         if not checkpoint:
-            raise UserError(f"--gan {name} needs --checkpoint PATH: {GAN_KINDS[name].source}")
+            raise SettingError(f"{{gan}} {name} needs {{checkpoint}} PATH: {GAN_KINDS[name].source}")
         unknown = sorted(set(options) - set(GANConfig.__dataclass_fields__))
         if unknown:
             raise UserError(f"unknown {name} option(s): {', '.join(unknown)}")

@@ -21,10 +21,9 @@ import torch.nn.functional as F
 from ..cameras import (EG3D_FOCAL, ViewSet, camera_position, conditioning_vector, intrinsics, look_at,
                        protocol_pivot, rays)
 from ..device import resolve_device
-from ..errors import UserError
 from ..gans.checkpoint import LoadedCheckpoint, read_checkpoint
-from ..gans.triplane import PRECISIONS
 from ..render import render_rays_chunked
+from .settings import NOT_RECORDED, GANConfig
 from .base import STREAM_LATENT, STREAM_RENDER, Generator, RenderedViews, Subject, subject_rng
 
 BACKGROUNDS = ("own", "black", "white", "grey")
@@ -41,30 +40,6 @@ CHUNK_RAYS_QUANTUM = 1024
 MIN_SR_BATCH = 2
 
 
-@dataclass(frozen=True)
-class GANConfig:
-    """truncation_cutoff None = all layers. background: 'own' (the GAN's own: EG3D black,
-    PanoHead/SphereHead their generated background) or a solid colour composited with the mask.
-    save_planes: resolution at which the plane features are stored in fp16 (0 = not stored).
-    precision: 'auto' (the originals' fp16 blocks in fp16 on CUDA, fp32 on CPU), 'fp32' or 'fp16'.
-    clip_rays: clip each ray's sample range to the generator's box and skip rays that miss it
-    (the originals march the whole range). memory_budget_mb: working memory that sets the chunk
-    and batch sizes (0 = the device's default)."""
-
-    truncation_psi: float = 0.7
-    truncation_cutoff: int | None = 14
-    background: object = "own"
-    save_planes: int = 0
-    deterministic: bool = False
-    noise_mode: str = "const"
-    device: str = "auto"
-    precision: str = "auto"
-    clip_rays: bool = False
-    memory_budget_mb: float = 0
-
-
-# Fields that change how the work is split, not what is computed: not recorded with the data.
-NOT_RECORDED = ("device", "memory_budget_mb")
 
 
 @dataclass(frozen=True)
@@ -102,10 +77,6 @@ class GANHeads(Generator):
     """``checkpoint``: an official checkpoint file, or a :class:`LoadedCheckpoint` already in memory."""
 
     def __init__(self, kind: str, checkpoint, config: GANConfig = GANConfig()):
-        if config.precision not in PRECISIONS:
-            raise UserError(f"precision {config.precision!r}: choose one of {', '.join(PRECISIONS)}")
-        if config.memory_budget_mb < 0:
-            raise UserError("the memory budget must be positive (or 0 for the device's default)")
         self.name = kind
         self.config = config
         self.device = resolve_device(config.device)

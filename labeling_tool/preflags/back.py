@@ -24,14 +24,13 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage as ndi
 
 from datagen.cameras import fov_to_focal
 from datagen.shards import view_name
 
 from .blur import alpha_edge_width, edge_sharpness
 from .detector import Detector, Flag, ramp_flag
-from .imaging import bbox, robust
+from .imaging import bbox, erode, robust
 
 BACK_SIDE, FRONT_SIDE = (135.0, 180.0, 225.0), (315.0, 0.0, 45.0)  # equator targets of each side
 NA = "not applicable: no back view (yaw 180 +- 20, pitch within 20) among this subject's cameras"
@@ -68,7 +67,7 @@ def seam_ratio(colour: np.ndarray, mask: np.ndarray) -> float | None:
     """log of the mean |horizontal colour gradient| of the central columns over the 90th percentile of the
     other head columns' (hair strands make some columns busy; a seam makes the centre stand out)."""
     top, bot, left, right = bbox(mask)
-    inner = ndi.binary_erosion(mask, iterations=2)
+    inner = erode(mask, 2)
     inner[top + int(0.7 * (bot - top)):] = False  # the head, not the neck
     g = np.abs(np.diff(colour, axis=1)).sum(-1)
     ok = inner[:, 1:] & inner[:, :-1]
@@ -91,7 +90,7 @@ def depth_step(mask: np.ndarray, depth: np.ndarray, focal_px: float) -> float | 
     top 70 %, two pixels inside the outline) of the depth's step from one column to the next less the
     mean of the steps beside it."""
     top, bot, left, right = bbox(mask)
-    inner = ndi.binary_erosion(mask, iterations=2)
+    inner = erode(mask, 2)
     inner[top + int(0.7 * (bot - top)):] = False
     ok = inner[:, 3:] & inner[:, 2:-1] & inner[:, 1:-2] & inner[:, :-3]  # columns c .. c + 3 on the head
     cols = np.nonzero(ok.any(0))[0]

@@ -81,7 +81,7 @@ class Blur(Detector):
             edges.append(v.once(("edge_sharpness", i), lambda: edge_sharpness(v.rgb[i], v.alpha[i])))
             c, m, _ = v.work[i]
             grey = c.mean(-1)
-            inner = ndi.binary_erosion(m, iterations=max(1, int(round(2 * v.s))))
+            inner = erode(m, max(1, int(round(2 * v.s))))
             if inner.sum() >= 16:
                 lap = ndi.laplace(nearest_fill(grey, m))
                 gv = float(grey[inner].var())

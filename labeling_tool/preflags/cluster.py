@@ -10,17 +10,18 @@ from __future__ import annotations
 import time
 from contextlib import closing
 
+from datagen.command_line import progress_bar
 from datagen.raycluster import ray_connection, ray_results
 from datagen.shards import index_sha256
 
 from .detector import FALSE_ALARM_RATE
-from .pipeline import _bar, _measure, finish, plan
+from .pipeline import finish, measure, plan
 from .registry import DETECTORS
 
 
 def _measure_shard(tasks: list) -> list:
     """Ray task: the (shard, record) pairs of one shard's planned subjects, in order."""
-    return [_measure(t + (DETECTORS,)) for t in tasks]
+    return [measure(t + (DETECTORS,)) for t in tasks]
 
 
 def score_on_ray(root, address: str | None = None, progress: bool = False, skip_incomplete: bool = False,
@@ -33,7 +34,7 @@ def score_on_ray(root, address: str | None = None, progress: bool = False, skip_
     by_shard: dict[str, list] = {}
     for t in tasks:
         by_shard.setdefault(t[0], []).append(t)
-    bar = _bar(len(tasks)) if progress else None
+    bar = progress_bar(len(tasks), "subj", "preflags", progress)
     results: dict[str, list] = {}
     with ray_connection(address) as ray:
         remote = ray.remote(num_cpus=1)(_measure_shard)
@@ -42,11 +43,9 @@ def score_on_ray(root, address: str | None = None, progress: bool = False, skip_
             with closing(ray_results(ray, pending, "measuring {}")) as finished:
                 for shard, records in finished:
                     results[shard] = records
-                    if bar is not None:
-                        bar.update(len(records))
+                    bar.update(len(records))
         finally:
-            if bar is not None:
-                bar.close()
+            bar.close()
     extracted = {"index_sha256": index_sha256(root), "records": [p for s in by_shard for p in results[s]],
                  "skipped_shards": skipped, "seconds": time.perf_counter() - t0}
     return finish(extracted, t0, {"backend": "ray", "tasks": len(by_shard)}, DETECTORS, labels, false_alarm_rate)

@@ -17,7 +17,7 @@ from scipy import ndimage as ndi
 from datagen.shards import view_name
 
 from .detector import Detector, Flag
-from .imaging import bbox, blob_response, box, fill_holes, nearest_fill, ramp, robust_tail
+from .imaging import bbox, blob_response, box, erode, fill_holes, nearest_fill, ramp, robust_tail
 from .views import EQUATOR_STEP, WORK_RES
 
 
@@ -43,7 +43,7 @@ def deepest_crater(depth, mask, s: float, st, symmetric: bool = False):
         off_centre = np.abs(2 * x - twice_centre) > 4.0 * st.sigma * s
         resp = np.where(off_centre[None, :], resp - mirrored, resp)
     yrel = (np.arange(mask.shape[0])[:, None] - top) / max(bot - top, 1)
-    region = ndi.binary_erosion(mask, iterations=max(1, int(round(st.erode * s)))) & (yrel <= st.upper)
+    region = erode(mask, max(1, int(round(st.erode * s)))) & (yrel <= st.upper)
     r = np.where(region, resp, 0.0)
     j = np.unravel_index(int(np.argmax(r)), r.shape)
     return float(r[j]), (int(j[0]), int(j[1]))

@@ -5,10 +5,12 @@ detector on the back and back-diagonal views (yaw ~135, ~180, ~225), at a scale 
 subject's size is large enough for it; dlib's MMOD CNN face detector on the head of the back view
 (yaw ~180), the view scaled to ``CNN_VIEW_PX`` wide; and OpenCV's Haar eye cascade on the back view
 (scaled to ``EYE_VIEW_PX`` wide), looking for a pair of eyes where a face would have them. The
-strongest of the three counts. (2) The back view (yaw ~180)
-compared with the front view (yaw ~0, as is and mirrored) on edge structure and on the colour layout
-of the face region, and searched for a nose-like depth bump where the front view has its nose: the
-mean of the three robust z-scores against the dataset, each capped so that no one cue carries it.
+strongest of the three counts. The CNN, half the cost of a subject at 128 px, runs only where the
+cheaper two see something face-like (``face_like``; ``Settings.cnn_always`` runs it everywhere).
+(2) The back view (yaw ~180) compared with the front view (yaw ~0, as is and mirrored) on edge
+structure and on the colour layout of the face region, and searched for a nose-like depth bump where
+the front view has its nose: the mean of the three robust z-scores against the dataset, each capped
+so that no one cue carries it.
 Not applicable (score 0) without a back view, e.g. in the ``frontal`` protocol.
 """
 from __future__ import annotations
@@ -26,7 +28,7 @@ from datagen.faces import cnn_detector, hog_detector
 from datagen.shards import view_name
 
 from .detector import Detector, Flag, ramp_flag
-from .imaging import blob_response, central, nearest_fill, ramp, robust
+from .imaging import blob_response, central, erode, nearest_fill, ramp, robust
 from .views import BACK_TOL
 
 BACK_TARGETS = (135.0, 180.0, 225.0)  # equator targets whose views should never show a face
@@ -139,6 +141,14 @@ def best_cnn_face(rgb: np.ndarray, mask: np.ndarray, view_px: int = CNN_VIEW_PX)
     return float(max((d.confidence for d in cnn_detector()(np.ascontiguousarray(img), 0)), default=NO_FACE))
 
 
+def face_like(faces: dict, eyes: int) -> bool:
+    """Whether the cheap face cues see anything on the back views, so that the CNN face detector is
+    worth running: any HOG response at all (a score above its floor ``NO_FACE``; ``faces`` {view: best
+    score}) or an eye pair (``eyes`` > 0, see ``eye_pair``). Every face the CNN found on the tuning
+    datasets was seen by one of them (benchmarks/reports/preflags_tuning.md)."""
+    return eyes > 0 or max(faces.values(), default=NO_FACE) > NO_FACE
+
+
 def _match(image, template, mask, sh: int, method) -> np.ndarray:
     """cv2.matchTemplate of ``template`` (cut to the bounding box of ``mask``) against ``image`` padded with
     zeros by ``sh`` px: a (2 sh + 1, 2 sh + 1) map, one value per shift of up to ``sh`` px each way (the
@@ -162,8 +172,8 @@ def edge_ncc(a_grey, a_mask, b_grey, b_mask, s: float) -> float:
     ga = np.hypot(ndi.sobel(a_grey, 0), ndi.sobel(a_grey, 1))
     gb = np.hypot(ndi.sobel(b_grey, 0), ndi.sobel(b_grey, 1))
     it = max(1, int(round(2 * s)))
-    ia = ndi.binary_erosion(a_mask, iterations=it)
-    ib = ndi.binary_erosion(b_mask, iterations=it)
+    ia = erode(a_mask, it)
+    ib = erode(b_mask, it)
     sh = max(1, int(round(3 * s)))
     if not ia.any() or not ib.any():
         return -1.0
@@ -201,12 +211,11 @@ def face_evidence(front, back, s: float):
     fg, bg = fc.mean(-1), bc.mean(-1)
     sim = max(edge_ncc(bg, bm, fg, fm, s), edge_ncc(bg, bm, fg[:, ::-1], fm[:, ::-1], s))
     it2 = max(1, int(round(2 * s)))
-    face = (central(ndi.binary_erosion(fm, iterations=it2), 0.25, 0.75, 0.3, 0.85)
-            & ndi.binary_erosion(bm, iterations=it2))
+    face = central(erode(fm, it2), 0.25, 0.75, 0.3, 0.85) & erode(bm, it2)
     colour = max(colour_ncc(bc, fc, face, s), colour_ncc(bc, fc[:, ::-1], face[:, ::-1], s)) if face.any() else -1.0
     it = max(1, int(round(3 * s)))
-    f_inner = ndi.binary_erosion(fm, iterations=it)
-    b_inner = ndi.binary_erosion(bm, iterations=it)
+    f_inner = erode(fm, it)
+    b_inner = erode(bm, it)
     if not f_inner.any() or not b_inner.any():
         return sim, colour, 0.0
     sig = 1.0 * s
@@ -225,7 +234,8 @@ def face_evidence(front, back, s: float):
 class Janus(Detector):
     name = "janus"
     description = ("a face on the back of the head: dlib's face detectors (HOG on the back and back-diagonal "
-                   "views, CNN on the back view's head), OpenCV's eye cascade (a pair of eyes on the back view), or "
+                   "views, CNN on the back view's head where HOG or the eye cascade sees anything), OpenCV's eye "
+                   "cascade (a pair of eyes on the back view), or "
                    "the back view vs the front view (edge correlation and face-region colour correlation, as is and "
                    "mirrored) and a nose-like depth bump where the front has its nose, the mean of the three robust "
                    "z-scores (each capped at 3); n/a without a back view")
@@ -243,6 +253,7 @@ class Janus(Detector):
         cnn_sat: float = 0.8    # confidence at which the score reaches 1
         eyes: int = 2           # eye-pair strength (detections per eye, skin between) at which it flags
         eyes_sat: int = 8       # strength at which the score reaches 1
+        cnn_always: bool = False  # run the CNN on every back view, not only where ``face_like`` (slower)
 
     def threshold(self):
         return {"cue_z": self.settings.z, "face_score": self.settings.face,
@@ -265,9 +276,13 @@ class Janus(Detector):
         sim, colour, relief = face_evidence(v.work[front], v.work[back], v.s)
         faces = self._faces(v)
         seen = v.rgb.get(back) is not None
-        cnn = best_cnn_face(v.rgb[back], v.mask(back)) if seen else NO_FACE
         eyes = eye_pair(v.rgb[back], v.mask(back), face_colour(v.rgb[front], v.mask(front))) \
             if seen and v.rgb.get(front) is not None else 0
+        cnn = NO_FACE
+        if seen and (self.settings.cnn_always or face_like(faces, eyes)):
+            cnn = best_cnn_face(v.rgb[back], v.mask(back))
+        elif seen:
+            cnn = None  # not run
         return {"back": back, "front": front, "sim": sim, "colour": colour, "relief": relief, "faces": faces,
                 "cnn": cnn, "eyes": eyes, "yaw": {i: float(v.views[i]["yaw_deg"]) for i in faces}}
 
@@ -299,6 +314,8 @@ class Janus(Detector):
         view = max(faces, key=lambda k: (hog[k], faces[k]))
         best = faces[view]
         cnn = j.get("cnn", NO_FACE)
+        ran = cnn is not None
+        cnn = cnn if ran else NO_FACE
         eyes = j.get("eyes", 0)
         # (score, saturation over threshold) of each face cue; the strongest counts
         face, ratio = max((hog[view], (t.face_sat - NO_FACE) / (at[view] - NO_FACE)),
@@ -307,7 +324,8 @@ class Janus(Detector):
         seen = (f"face detector on {view_name(view)} (yaw {j.get('yaw', {}).get(view, 0):.0f}): score {best:.2f} "
                 f"(flag at {at[view]:g})") if best > NO_FACE else "no face found by HOG on the back views"
         seen += (f"; CNN face detector on {view_name(j['back'])}: confidence {cnn:.2f} (flag at {t.cnn:g})"
-                 if cnn > NO_FACE else "; none by the CNN on the back view")
+                 if cnn > NO_FACE else "; none by the CNN on the back view" if ran
+                 else "; CNN not run (nothing face-like for HOG or the eye cascade)")
         seen += (f"; a pair of eyes on {view_name(j['back'])} ({eyes} detections each, flag at {t.eyes})" if eyes
                  else "; no pair of eyes on the back view")
         if face > cue.score:

@@ -8,12 +8,12 @@ records without decoding again.
 from __future__ import annotations
 
 import multiprocessing as mp
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from datagen.command_line import progress_bar
 from datagen.errors import DatasetError
 from datagen.preflags import FORMAT
 from datagen.shards import check_shards, index_sha256, read_index, read_sidecar, shard_index, tar_path
@@ -36,7 +36,7 @@ def measure_subject(views: SubjectViews, detectors=DETECTORS) -> dict:
             "protocol": views.meta.get("protocol"), "measured": {d.name: d.measure(views) for d in detectors}}
 
 
-def _measure(task):
+def measure(task):
     """Worker: (shard, tar, key, start, end, detectors) -> (shard, record); a failure is a record too."""
     shard, tar, key, start, end, detectors = task
     try:
@@ -95,32 +95,21 @@ def extract(root, workers: int = 1, progress: bool = False, detectors=DETECTORS,
     t0 = time.perf_counter()
     tasks, skipped = plan(root, skip_incomplete, shards)
     tasks = [t + (detectors,) for t in tasks]
-    bar = _bar(len(tasks)) if progress else None
+    bar = progress_bar(len(tasks), "subj", "preflags", progress)
     if workers > 1 and len(tasks) > 1:
         with _pool_context().Pool(workers, initializer=use, initargs=(choose(workers, threads),)) as pool:
             records = []
-            for r in pool.imap(_measure, tasks, chunksize=4):
+            for r in pool.imap(measure, tasks, chunksize=4):
                 records.append(r)
-                if bar is not None:
-                    bar.update(1)
+                bar.update(1)
     else:
         records = []
         for t in tasks:
-            records.append(_measure(t))
-            if bar is not None:
-                bar.update(1)
-    if bar is not None:
-        bar.close()
+            records.append(measure(t))
+            bar.update(1)
+    bar.close()
     return {"index_sha256": index_sha256(root), "records": records, "skipped_shards": skipped,
             "seconds": time.perf_counter() - t0}
-
-
-def _bar(total: int):
-    try:
-        from tqdm import tqdm
-    except ImportError:
-        return None
-    return tqdm(total=total, unit="subj", desc="preflags", file=sys.stderr)
 
 
 def thumbnails(extracted: dict, report: dict) -> list:

@@ -98,18 +98,21 @@ def decode(value):
     return {k: decode(v) for k, v in value["d"].items()}
 
 
-def slice_shards(root, k: int, n: int) -> list[int]:
-    """The shard numbers of slice ``k`` of ``n`` among those the dataset index lists."""
-    listed = [shard_index(sh["name"]) for sh in read_index(root)["shards"]]
+def slice_shards(root, k: int, n: int, index: dict | None = None) -> list[int]:
+    """The shard numbers of slice ``k`` of ``n`` among those the dataset index (``index``, read when None) lists."""
+    listed = [shard_index(sh["name"]) for sh in (read_index(root) if index is None else index)["shards"]]
     mine = set(job_shards(max(listed, default=-1) + 1, k, n))
     return [i for i in listed if i in mine]
 
 
-def write_slice(root, k: int, n: int, extracted: dict, out=None, detectors=DETECTORS) -> Path:
-    """Write the records ``extracted`` (:func:`pipeline.extract` of slice ``k`` of ``n``) atomically."""
+def write_slice(root, k: int, n: int, extracted: dict, out=None, detectors=DETECTORS, index: dict | None = None
+                ) -> Path:
+    """Write the records ``extracted`` (:func:`pipeline.extract` of slice ``k`` of ``n``) atomically;
+    ``index``: the dataset index (read when None)."""
     skipped = list(extracted["skipped_shards"])
-    names = {shard_index(sh["name"]): sh["name"] for sh in read_index(root)["shards"]}
-    measured = [names[i] for i in slice_shards(root, k, n) if names[i] not in skipped]
+    index = read_index(root) if index is None else index
+    names = {shard_index(sh["name"]): sh["name"] for sh in index["shards"]}
+    measured = [names[i] for i in slice_shards(root, k, n, index) if names[i] not in skipped]
     doc = {"format": SLICE_FORMAT, "dataset_index_sha256": extracted["index_sha256"],
            "detectors_sha256": detectors_sha256(detectors), "slice": [k, n],
            "shards": measured, "skipped_shards": skipped, "seconds": extracted["seconds"],
@@ -144,7 +147,8 @@ def read_slices(root, out=None, detectors=DETECTORS) -> dict:
         raise UserError(f"{slice_path(folder, missing[0], n)}: missing ({len(missing)} of the {n} slices are not "
                         f"measured yet); run 'label-tool auto {root} --shard-index {missing[0]} --num-shards {n}'")
     index_sha, det_sha = index_sha256(root), detectors_sha256(detectors)
-    shards = read_index(root)["shards"]
+    index = read_index(root)
+    shards = index["shards"]
     names = {shard_index(sh["name"]): sh["name"] for sh in shards}
     subjects = {sh["name"]: sh["subjects"] for sh in shards}
     by_shard, skipped, seconds = {}, set(), 0.0
@@ -158,7 +162,7 @@ def read_slices(root, out=None, detectors=DETECTORS) -> dict:
             raise UserError(f"{path}: measured with other detector settings or pre-flags code; {rerun}")
         try:
             held = set(doc["shards"]) | set(doc["skipped_shards"])
-            if doc["slice"] != [k, n] or held != {names[i] for i in slice_shards(root, k, n)}:
+            if doc["slice"] != [k, n] or held != {names[i] for i in slice_shards(root, k, n, index)}:
                 raise DatasetError(f"{path}: does not hold the shards of slice {k} of {n}; {rerun}")
             skipped.update(doc["skipped_shards"])
             seconds += float(doc["seconds"])

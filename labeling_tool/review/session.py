@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 from datagen.defects import DEFECT_CLASSES, REASON_LABELS
 from datagen.errors import UserError
-from datagen.events import EventLog, is_decision
+from datagen.events import DECISIONS, EventLog, is_decision
 
 REASON_SHORT = REASON_LABELS
 # the reason a triage click or space gives a cell, from its strongest pre-flag (labeling_tool.preflags)
@@ -65,8 +65,9 @@ class ReviewSession:
         self.index = {q.subject: i for i, q in enumerate(queue)}
         self.log = EventLog(labels_dir, reviewer)
         # reviewed: good or bad; a skip is "decide later" (not reviewed, here as in compile)
-        self.done = sum(1 for s, e in self.log.verdicts().items() if s in self.index and is_decision(e))
-        self.skipped = sum(1 for s, e in self.log.verdicts().items() if s in self.index and e.action == "skip")
+        actions = [e.action for s, e in self.log.verdicts().items() if s in self.index]
+        self.done = sum(actions.count(a) for a in DECISIONS)
+        self.skipped = actions.count("skip")
         self.pos = self.first_unreviewed()
         self.triage_page, self.triage_cursor = 0, 0
         self.pending: dict[str, tuple[str, tuple]] = {}   # triage changes not committed yet

@@ -12,7 +12,7 @@ from datagen.device import one_cpu_thread
 
 from .defects import smear_back
 from .field import head_field
-from .shapes import BOX, _t
+from .shapes import BOX, f32
 
 
 @dataclass
@@ -93,9 +93,9 @@ def _bake(params: dict, defects: list[dict], res: int) -> HeadGrid:
     # occlusion from the distance along the normal.
     gz, gy, gx = torch.gradient(sdf_grid, spacing=fine_voxel)
     normal = F.normalize(torch.stack([gx, gy, gz], dim=-1).reshape(-1, 3)[near], dim=-1)
-    key = F.normalize(_t(params["light_dir"]), dim=0)
-    fill = F.normalize(_t([-params["light_dir"][0], 0.2, -0.6]), dim=0)
-    back = F.normalize(_t([-0.3 * params["light_dir"][0], 0.6, -0.8]), dim=0)  # from behind and above
+    key = F.normalize(f32(params["light_dir"]), dim=0)
+    fill = F.normalize(f32([-params["light_dir"][0], 0.2, -0.6]), dim=0)
+    back = F.normalize(f32([-0.3 * params["light_dir"][0], 0.6, -0.8]), dim=0)  # from behind and above
     amb = params["ambient"]
     grid = sdf_grid[None, None]
     occlusion = torch.zeros(pts.shape[0])

@@ -5,14 +5,14 @@ import math
 
 import torch
 
-from .anatomy import _cranium
-from .shapes import _extrude, _smoothstep, sd_capsule, sd_ellipsoid, smax, smin
+from .anatomy import cranium
+from .shapes import extrude, smoothstep, sd_capsule, sd_ellipsoid, smax, smin
 
 
 ARM_DEPTH = 1.3  # upper arms: depth (front to back) over width
 
 
-def _torso(p, P):
+def torso_sdf(p, P):
     """Shoulders and chest (skin) and the garment over them below the neckline: (skin sdf, cloth sdf)."""
     sw = P["shoulder_width"]
     d = sd_ellipsoid(p, (0.0, -0.74, -0.045), (sw * 0.85, 0.33, 0.21))
@@ -27,7 +27,7 @@ def _torso(p, P):
     x, y, z = p[:, 0], p[:, 1], p[:, 2]
     # The neck opening: a cylinder round the neck, deeper at the front (and a V for v-necks).
     around = torch.sqrt(x ** 2 + ((z + 0.05) * 1.1) ** 2)
-    open_r = P["neck_radius"] * 1.25 + 0.03 * _smoothstep(-0.02, 0.1, z) * (P["neckline"] != "collar")
+    open_r = P["neck_radius"] * 1.25 + 0.03 * smoothstep(-0.02, 0.1, z) * (P["neckline"] != "collar")
     opening = torch.maximum(around - open_r, -0.45 - y)
     if P["neckline"] == "v":
         vee = torch.maximum(x.abs() - 0.09 * ((y + 0.62) / 0.2).clamp(0.0, 1.0), -z)
@@ -39,7 +39,7 @@ def _torso(p, P):
     return d, cloth
 
 
-def _glasses_sdf(p, P, A):
+def glasses_sdf(p, P, A):
     """Glasses: two rims (round or rectangular) in front of the eyes, a bridge and the arms to the ears."""
     ex, E = P["eye_spacing"], P["eye_height"]
     zg = A["eye"] + 0.028
@@ -53,7 +53,7 @@ def _glasses_sdf(p, P, A):
             qx, qy = x.abs() - (w - 0.012), y.abs() - (h - 0.012)
             box = torch.stack([qx.clamp_min(0), qy.clamp_min(0)], -1).norm(dim=-1) + torch.maximum(qx, qy).clamp_max(0) - 0.012
             ring = box.abs() - t / 2
-        parts.append(_extrude(ring, (p[:, 2] - zg).abs() - 0.006))
+        parts.append(extrude(ring, (p[:, 2] - zg).abs() - 0.006))
     rim = torch.minimum(*parts)
     bridge = sd_capsule(p, (-ex + 0.03, E + 0.008, zg), (ex - 0.03, E + 0.008, zg), 0.006, 0.006)
     rx = P["skull_radii"][0]
@@ -66,15 +66,15 @@ def _glasses_sdf(p, P, A):
 CAP_BRIM_HALF = 0.011  # half-thickness of a cap brim (head units): about 2.4 grid voxels thick at 128^3
 
 
-def _cap_sdf(p, P):
+def cap_sdf(p, P):
     """A cap: a dome over the skull (and its hair) and a brim over the forehead."""
-    cc, (rx, ry, rz) = _cranium(P)
+    cc, (rx, ry, rz) = cranium(P)
     cy = cc[1]
     th = max(P["hair_thickness"], 0.0) * (0.5 if P["hair_style"] == "afro" else 1.0) + 0.015
     dome = sd_ellipsoid(p, cc, (rx + th, ry + th, rz + th))
     # The band sits high on the forehead, as most people wear a cap: lower, it hid the brows and the
     # upper face (a face detector then missed about half the faces in caps).
-    dome = smax(dome, (cy + 0.12 - 0.1 * _smoothstep(-0.1, -0.2, p[:, 2])) - p[:, 1], 0.01)
+    dome = smax(dome, (cy + 0.12 - 0.1 * smoothstep(-0.1, -0.2, p[:, 2])) - p[:, 1], 0.01)
     # Brim: a flat plate of constant thickness with a rounded edge (an exact distance), tilted down.
     tilt = 0.18
     yb = cy + 0.125
@@ -83,5 +83,5 @@ def _cap_sdf(p, P):
     q_z = -(p[:, 1] - yb) * math.sin(tilt) + (p[:, 2] - zb) * math.cos(tilt)
     outline = torch.sqrt((p[:, 0] * 1.05) ** 2 + q_z ** 2) - 0.19
     outline = torch.maximum(outline, 0.02 - q_z)  # the front half only
-    brim = _extrude(outline + 0.006, q_y.abs() - (CAP_BRIM_HALF - 0.006)) - 0.006
+    brim = extrude(outline + 0.006, q_y.abs() - (CAP_BRIM_HALF - 0.006)) - 0.006
     return torch.minimum(dome, brim)

@@ -15,10 +15,10 @@ import numpy as np
 import torch
 
 from ...defects import INJECTED
-from .anatomy import _cranium, _features, _skin_rgb
-from .hair import _hair_rgb
-from .params import _pick
-from .shapes import BOX, HEAD_SCALE, _local, _smoothstep, _t, sd_capsule, sd_ellipsoid, sd_sphere, smax
+from .anatomy import cranium, face_features, skin_colour
+from .hair import hair_rgb_of
+from .params import pick_one
+from .shapes import BOX, HEAD_SCALE, near_box, smoothstep, f32, sd_capsule, sd_ellipsoid, sd_sphere, smax
 
 # The injected classes of the taxonomy (datagen.defects), in its draw order. As modelled here:
 # janus        a second face on the back of the head (eyes, brows, nose, lips), seen through the hair;
@@ -38,7 +38,7 @@ APPLY_ORDER = ("janus", "haze", "floaters", "holes", "seam", "blurry_back", "fla
 class Effect:
     """How a defect changes one evaluation of the field at points p (head units).
 
-    features: [(sdf, rgb, blend)] joined to the face's features (as ``anatomy._features`` returns them);
+    features: [(sdf, rgb, blend)] joined to the face's features (as ``anatomy.face_features`` returns them);
     hair_window: a distance below 0 where the hair is cut away; skin: (skin albedo, q, sel) -> skin
     albedo at the points p[sel] = q; parts: [(sdf, albedo(q, sel))] of extra material; reshape:
     sdf -> (sdf, recolour or None), recolour: (rgb, q, sel) -> rgb, applied to the blended albedo.
@@ -53,7 +53,7 @@ class Effect:
 
 def _back_weight(p, cc):
     """0 on the front half of the head, rising to 1 over the back (head units)."""
-    return _smoothstep(cc[2] + 0.03, cc[2] - 0.12, p[:, 2])
+    return smoothstep(cc[2] + 0.03, cc[2] - 0.12, p[:, 2])
 
 
 def _severity_only(rng, severity):
@@ -66,7 +66,7 @@ def _severity_only(rng, severity):
 def apply_janus(p, P, A, spec):
     """The same face mirrored onto the back of the head (rotated 180 degrees about y), seated on the
     skull; it shows through a window in the hair, as a GAN's mirrored face does."""
-    cc, (rx, ry, rz) = _cranium(P)
+    cc, (rx, ry, rz) = cranium(P)
     zf = A["nasion"]
     mirrored = torch.stack([-p[:, 0], p[:, 1], -p[:, 2] - (rz - cc[2]) + zf - 0.06], dim=-1)
     plate_center = (0.0, P["eye_height"] - 0.05, zf - 0.1)
@@ -76,8 +76,8 @@ def apply_janus(p, P, A, spec):
 
     def skin(skin_rgb, q, sel):  # the mirrored face's brows, lash lines and lips on the back
         back = (window[sel] < 0) & (q[:, 2] < cc[2])
-        return torch.where(back[:, None], _skin_rgb(mirrored[sel], P, A), skin_rgb)
-    return Effect(features=[(plate, None, 0.02)] + _features(mirrored, P, A), hair_window=window, skin=skin)
+        return torch.where(back[:, None], skin_colour(mirrored[sel], P, A), skin_rgb)
+    return Effect(features=[(plate, None, 0.02)] + face_features(mirrored, P, A), hair_window=window, skin=skin)
 
 
 # --- haze
@@ -113,15 +113,15 @@ def _wisp_sdf(p, wisp, cc, reach):
     def strand(q):
         d = torch.stack([sd_capsule(q, a, b, r, r) for a, b in zip(knots[:-1], knots[1:])]).amin(0)
         return [(d, None)]
-    return _local(p, lo.tolist(), hi.tolist(), strand)[0][0]
+    return near_box(p, lo.tolist(), hi.tolist(), strand)[0][0]
 
 
 def apply_haze(p, P, A, spec):
     """Grey wisps (tinted by the hair), never quite solid: the distance stays above a floor, so the
     density (and the opacity of a strand) stays partial; lower floors at higher severity."""
-    cc, radii = _cranium(P)
+    cc, radii = cranium(P)
     reach = max(radii) + P["hair_thickness"]  # the head's largest radius over its hair
-    grey = 0.3 * _t(P["hair_rgb"]) + 0.7 * _t([0.82, 0.8, 0.78])
+    grey = 0.3 * f32(P["hair_rgb"]) + 0.7 * f32([0.82, 0.8, 0.78])
     floor = 0.01 - 0.005 * spec["severity"]
     parts = [(_wisp_sdf(p, wisp, cc, reach).clamp_min(floor), lambda q, sel: grey.expand(q.shape[0], 3))
              for wisp in spec["wisps"]]
@@ -146,7 +146,7 @@ def sample_floaters(rng, severity):
 def apply_floaters(p, P, A, spec):
     """Opaque spheres of their own colour."""
     return Effect(parts=[(sd_sphere(p, blob["center"], blob["radius"]),
-                          lambda q, sel, blob=blob: _t(blob["rgb"]).expand(q.shape[0], 3)) for blob in spec["blobs"]])
+                          lambda q, sel, blob=blob: f32(blob["rgb"]).expand(q.shape[0], 3)) for blob in spec["blobs"]])
 
 
 # --- holes
@@ -161,7 +161,7 @@ def sample_hole(rng, severity):
 
 def apply_hole(p, P, A, spec):
     """A sphere cut out of the head at ``direction``, its wall dark red."""
-    cc, radii = _cranium(P)
+    cc, radii = cranium(P)
     center = np.asarray(spec["direction"]) * (max(radii) + 0.02) + np.array([0.0, cc[1], cc[2]])
     cut = sd_sphere(p, center, spec["radius"])
 
@@ -169,7 +169,7 @@ def apply_hole(p, P, A, spec):
         wall = torch.exp(-cut.abs() / 0.006) * (sdf < 0)  # where the cut, not the head, is the surface
 
         def recolour(rgb, q, sel):
-            return rgb * (1 - wall[sel, None]) + _t([0.22, 0.07, 0.05]) * wall[sel, None]
+            return rgb * (1 - wall[sel, None]) + f32([0.22, 0.07, 0.05]) * wall[sel, None]
         return smax(sdf, -cut, 0.005), recolour
     return Effect(reshape=reshape)
 
@@ -183,8 +183,8 @@ def sample_seam(rng, severity):
 
 def apply_seam(p, P, A, spec):
     """Over the back above the jaw, the side of x = ``x`` that ``side`` points to is sunk and darkened."""
-    cc = _cranium(P)[0]
-    backness = _smoothstep(cc[2] - 0.02, cc[2] - 0.1, p[:, 2]) * _smoothstep(P["jaw_angle_y"] - 0.05, P["jaw_angle_y"] + 0.05, p[:, 1])
+    cc = cranium(P)[0]
+    backness = smoothstep(cc[2] - 0.02, cc[2] - 0.1, p[:, 2]) * smoothstep(P["jaw_angle_y"] - 0.05, P["jaw_angle_y"] + 0.05, p[:, 1])
     seam_side = (spec["side"] * (p[:, 0] - spec["x"]) > 0).float() * backness
 
     def reshape(sdf):
@@ -198,7 +198,7 @@ def apply_seam(p, P, A, spec):
 def apply_blurry_back(p, P, A, spec):
     """A softer surface (the density's transition widens) over the back; ``smear_back`` blurs its
     baked colour."""
-    weight = _back_weight(p, _cranium(P)[0])
+    weight = _back_weight(p, cranium(P)[0])
     return Effect(reshape=lambda sdf: (sdf * (1.0 - (0.2 + 0.45 * spec["severity"]) * weight), None))
 
 
@@ -218,7 +218,7 @@ def smear_back(rgb_grid, near, params, defects, res):
     weight = gaussian_filter(mask, sigma, mode="constant")
     blurred = np.stack([gaussian_filter(c, sigma, mode="constant") for c in rgb_grid.numpy()]) / np.maximum(weight, 1e-6)
     z = torch.linspace(-BOX, BOX, res) / HEAD_SCALE  # grid axis 0 is z
-    w = _back_weight(torch.stack([torch.zeros(res), torch.zeros(res), z], -1), _cranium(params)[0])
+    w = _back_weight(torch.stack([torch.zeros(res), torch.zeros(res), z], -1), cranium(params)[0])
     w = w[:, None, None] * torch.from_numpy(mask)
     return rgb_grid * (1 - w) + torch.from_numpy(blurred).float() * w
 
@@ -229,15 +229,15 @@ def apply_flat_back(p, P, A, spec):
     """A plane cuts the back of the head off (deeper with severity); below the jaw it leans back so
     that the neck and body stay whole. The cut face takes the hair's colour, as a GAN's flattened
     back keeps its hair texture."""
-    cc, radii = _cranium(P)
+    cc, radii = cranium(P)
     depth = 0.03 + 0.09 * spec["severity"]
     plane = cc[2] - radii[2] + depth - 0.6 * (P["jaw_angle_y"] - p[:, 1]).clamp_min(0.0) - p[:, 2]
 
     def reshape(sdf):
-        cut_face = _smoothstep(-0.004, 0.004, plane - sdf)
+        cut_face = smoothstep(-0.004, 0.004, plane - sdf)
         if P["hair_style"] == "bald":
             return smax(sdf, plane, 0.004), None
-        return smax(sdf, plane, 0.004), lambda rgb, q, sel: rgb + (_hair_rgb(q, P) - rgb) * cut_face[sel, None]
+        return smax(sdf, plane, 0.004), lambda rgb, q, sel: rgb + (hair_rgb_of(q, P) - rgb) * cut_face[sel, None]
     return Effect(reshape=reshape)
 
 
@@ -272,7 +272,7 @@ def sample_defects(rng: np.random.Generator, rate: float, params: dict, types=DE
     person) is not used."""
     if rng.uniform() >= rate:
         return []
-    kind = _pick(rng, list(types))
+    kind = pick_one(rng, list(types))
     s = float(rng.uniform(*severity))
     return [{"type": kind, "severity": s, **SAMPLE[kind](rng, s)}]
 

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import torch
 
-from .anatomy import EYE_RADIUS, _anchors_of, _eye_centre, _face_base, _facial_hair, _features, _skin_rgb
-from .clothing import _cap_sdf, _glasses_sdf, _torso
+from .anatomy import EYE_RADIUS, anchors_of, eye_centre, face_base, facial_hair_field, face_features, skin_colour
+from .clothing import cap_sdf, glasses_sdf, torso_sdf
 from .defects import effects
-from .hair import _hair, _hair_rgb, _strands
-from .shapes import HEAD_SCALE, _gauss, _local, _t, _waves, sd_sphere, smax, smin
+from .hair import hair_field, hair_rgb_of, hair_strands
+from .shapes import HEAD_SCALE, gauss, near_box, f32, wave_noise, sd_sphere, smax, smin
 
 
 def head_field(p: torch.Tensor, P: dict, defects: list[dict], colour=True):
@@ -22,24 +22,24 @@ def head_field(p: torch.Tensor, P: dict, defects: list[dict], colour=True):
 def _body(p, P, A):
     """The skin surface with eye sockets, and the torso's skin; and the clothing's distance (1 with
     ``P["torso"]`` False: the head and neck alone, as the PanoLAM head template is made)."""
-    body = _face_base(p, P)
+    body = face_base(p, P)
     for sx in (-1.0, 1.0):
-        c = _eye_centre(P, A, sx)
+        c = eye_centre(P, A, sx)
         body = smax(body, -sd_sphere(p, (c[0], c[1] + 0.004, c[2] + 0.012), EYE_RADIUS * 1.12), 0.018)
     if not P.get("torso", True):
         return body, torch.full_like(body, 1.0)
     sw = P["shoulder_width"] + 0.13
-    (skin_d, _), (cloth_d, _) = _local(p, (-sw, -1.2, -0.24), (sw, -0.14, 0.16),
-                                       lambda q: [(d, None) for d in _torso(q, P)], margin=0.05)
+    (skin_d, _), (cloth_d, _) = near_box(p, (-sw, -1.2, -0.24), (sw, -0.14, 0.16),
+                                       lambda q: [(d, None) for d in torso_sdf(q, P)], margin=0.05)
     return smin(body, skin_d, 0.04), cloth_d
 
 
 def _head_field_local(p: torch.Tensor, P: dict, defects: list[dict], colour=True):
     """``head_field`` in head units."""
-    A = _anchors_of(P)
+    A = anchors_of(P)
     injected = effects(p, P, A, defects)
     body, cloth_d = _body(p, P, A)
-    parts = _features(p, P, A) + [part for e in injected for part in e.features]
+    parts = face_features(p, P, A) + [part for e in injected for part in e.features]
 
     # (sdf, albedo) of every part; the albedo is a callable so that it is only made when needed.
     sdf_parts = [(body, lambda q, sel: skin_rgb)]
@@ -49,22 +49,22 @@ def _head_field_local(p: torch.Tensor, P: dict, defects: list[dict], colour=True
         sdf_parts.append((d, (lambda q, sel: skin_rgb) if rgb is None else (lambda q, sel: lip_rgb)
                           if isinstance(rgb, str) else (lambda q, sel, rgb=rgb: rgb[sel])))
     sdf = torch.minimum(sdf, cloth_d)
-    sdf_parts.append((cloth_d, lambda q, sel: _t(P["clothing_rgb"]) * (0.92 + 0.08 * torch.sin(q @ _t([9.0, 31.0, 5.0])))[:, None]))
+    sdf_parts.append((cloth_d, lambda q, sel: f32(P["clothing_rgb"]) * (0.92 + 0.08 * torch.sin(q @ f32([9.0, 31.0, 5.0])))[:, None]))
     extra = []
     if P["facial_hair"] not in ("none", "stubble"):
-        beard = _local(p, (-0.2, P["chin_y"] - 0.08, -0.1), (0.2, P["mouth_y"] + 0.08, 0.3),
-                       lambda q: [(_facial_hair(q, P, A), None)])[0][0]
-        extra.append((beard, lambda q, sel: _t(P["brow_rgb"]) * 1.1 * _strands(q * 1.6, P)[:, None]))
-    hair = _hair(p, P, A)
+        beard = near_box(p, (-0.2, P["chin_y"] - 0.08, -0.1), (0.2, P["mouth_y"] + 0.08, 0.3),
+                       lambda q: [(facial_hair_field(q, P, A), None)])[0][0]
+        extra.append((beard, lambda q, sel: f32(P["brow_rgb"]) * 1.1 * hair_strands(q * 1.6, P)[:, None]))
+    hair = hair_field(p, P, A)
     if hair is not None:
         for e in injected:
             if e.hair_window is not None:
                 hair = smax(hair, -e.hair_window, 0.01)
-        extra.append((hair, lambda q, sel: _hair_rgb(q, P)))
+        extra.append((hair, lambda q, sel: hair_rgb_of(q, P)))
     if P["glasses"]:
-        extra.append((_glasses_sdf(p, P, A), lambda q, sel: _t(P["glasses_rgb"]).expand(q.shape[0], 3)))
+        extra.append((glasses_sdf(p, P, A), lambda q, sel: f32(P["glasses_rgb"]).expand(q.shape[0], 3)))
     if P["cap"]:
-        extra.append((_cap_sdf(p, P), lambda q, sel: _t(P["cap_rgb"]).expand(q.shape[0], 3)))
+        extra.append((cap_sdf(p, P), lambda q, sel: f32(P["cap_rgb"]).expand(q.shape[0], 3)))
     for d, albedo in extra + [part for e in injected for part in e.parts]:
         sdf_parts.append((d, albedo))
         sdf = torch.minimum(sdf, d)
@@ -79,13 +79,13 @@ def _head_field_local(p: torch.Tensor, P: dict, defects: list[dict], colour=True
     # The albedo, where it is asked for.
     sel = torch.arange(p.shape[0]) if colour is True else torch.nonzero(colour(sdf * HEAD_SCALE)).squeeze(1)
     q = p[sel]
-    skin_rgb = _skin_rgb(q, P, A)
+    skin_rgb = skin_colour(q, P, A)
     for e in injected:
         if e.skin is not None:
             skin_rgb = e.skin(skin_rgb, q, sel)
-    lip_rgb = _t(P["lip_rgb"]) * (1.0 + 0.5 * _waves(q, P["skin_waves"][:2]))[:, None]
-    mouth = _gauss(q[:, 1] - P["mouth_y"], 0.003)
-    lip_rgb = lip_rgb * (1 - 0.7 * mouth[:, None]) + _t([0.12, 0.03, 0.03]) * 0.7 * mouth[:, None]
+    lip_rgb = f32(P["lip_rgb"]) * (1.0 + 0.5 * wave_noise(q, P["skin_waves"][:2]))[:, None]
+    mouth = gauss(q[:, 1] - P["mouth_y"], 0.003)
+    lip_rgb = lip_rgb * (1 - 0.7 * mouth[:, None]) + f32([0.12, 0.03, 0.03]) * 0.7 * mouth[:, None]
     # Colour of the nearest part, softly blended across seams.
     d_all = torch.stack([d[sel] for d, _ in sdf_parts], dim=-1)
     w = torch.softmax(-(d_all - d_all.min(-1, keepdim=True).values) / 0.004, dim=-1)

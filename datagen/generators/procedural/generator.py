@@ -2,17 +2,17 @@
 distance and integrating a short band of VolSDF density around the hit."""
 from __future__ import annotations
 
-from dataclasses import dataclass
 
 import torch
 
 from ...cameras import ViewSet, rays
 from ...render import RenderSettings, box_interval, render_rays_chunked
+from ..settings import ProceduralConfig
 from ..base import STREAM_LATENT, STREAM_RENDER, Generator, RenderedViews, Subject, subject_rng
 from .bake import HeadGrid, bake_head, sample_grid
-from .defects import DEFECT_TYPES, sample_defects
+from .defects import sample_defects
 from .params import sample_params
-from .shapes import BOX, _t
+from .shapes import BOX, f32
 
 
 def laplace_density(sdf: torch.Tensor, beta: float) -> torch.Tensor:
@@ -60,26 +60,6 @@ def sphere_trace(sdf_grid, origins, dirs, t_near, t_far, hit_eps, max_steps=96):
         keep = ~done & (ta < t_far[active])
         active = active[keep]
     return t, hit
-
-
-@dataclass(frozen=True)
-class ProceduralConfig:
-    """Settings of the procedural generator (``--gan procedural`` options)."""
-
-    grid_resolution: int = 128
-    defect_rate: float = 0.04
-    defect_types: tuple = DEFECT_TYPES    # the kinds drawn (uniformly) when a defect is injected
-    defect_severity: tuple = (0.3, 1.0)   # severity range (0: barely there, 1: gross)
-    background: tuple = (1.0, 1.0, 1.0)
-    beta: float = 0.003           # width of the density transition (world units)
-    band_before: float = 0.015    # sampled band around the sphere-traced hit (world units)
-    band_after: float = 0.05
-    # Samples in the band (colour at interval midpoints): deterministic (6, 6) reaches 53.6 dB
-    # foreground PSNR (51.7 on the worst of 4 subjects) against a (96, 96) reference; (8, 8) 60 dB.
-    samples: int = 6              # coarse samples in the band
-    samples_importance: int = 6   # importance samples in the band
-    max_bands: int = 3            # bands per ray (more only where a ray grazes a thin edge)
-    deterministic: bool = True
 
 
 class ProceduralHeads(Generator):
@@ -148,7 +128,7 @@ class ProceduralHeads(Generator):
             t_start = t_start.clone()
             t_start[todo] = end[open_]
         depth = torch.where(alpha > 0, depth_sum / alpha.clamp(min=1e-8), torch.zeros_like(alpha))
-        bg = _t(cfg.background)
+        bg = f32(cfg.background)
         alpha = alpha.clamp(0.0, 1.0)
         rgb = (rgb + (1.0 - alpha[:, None]) * bg).clamp(0.0, 1.0)
         return RenderedViews(

@@ -42,7 +42,7 @@ STYLE_PROBS = {"female": [0.02, 0.05, 0.10, 0.13, 0.14, 0.24, 0.13, 0.11, 0.08],
                "male": [0.13, 0.27, 0.20, 0.09, 0.04, 0.06, 0.05, 0.04, 0.12]}
 
 
-def _pick(rng, options, probs=None):
+def pick_one(rng, options, probs=None):
     """One of ``options``, uniformly or with weights ``probs`` (normalised here)."""
     if probs is not None:
         probs = np.asarray(probs, dtype=np.float64)
@@ -50,7 +50,7 @@ def _pick(rng, options, probs=None):
     return options[int(rng.choice(len(options), p=probs))]
 
 
-def _oldness(age: float) -> float:
+def oldness(age: float) -> float:
     """0 at 18, 1 at 80: how far age has worked on a face."""
     return (age - 18.0) / 62.0
 
@@ -73,10 +73,10 @@ def _hair_colour(rng, age):
     probs[8], probs[9] = 0.7 * grey, 0.3 * grey
     probs = probs / probs.sum() * 0.98
     probs[10] = 0.02
-    name = _pick(rng, names, probs)
+    name = pick_one(rng, names, probs)
     rgb = HAIR_COLOURS[name]
     if rgb is None:
-        rgb = _pick(rng, DYES)
+        rgb = pick_one(rng, DYES)
     jitter = rng.uniform(0.9, 1.1, 3)
     # Brightness varies +-10 %, hue little: independent channels turned grey hair green or pink.
     jitter = jitter.mean() + 0.25 * (jitter - jitter.mean())
@@ -86,7 +86,7 @@ def _hair_colour(rng, age):
 
 def _person(u, rng) -> dict:
     """Sex, masculinity (0..1, about 0.2 for women and 0.8 for men), age (years) and weight (0..1)."""
-    sex = _pick(rng, ["female", "male"])
+    sex = pick_one(rng, ["female", "male"])
     masc = float(np.clip((0.8 if sex == "male" else 0.2) + rng.normal(0.0, 0.08), 0.0, 1.0))
     age = u(18.0, 80.0)
     return {"sex": sex, "age": age, "age_bracket": age_bracket(age), "masculinity": masc, "weight": u(0.0, 1.0)}
@@ -108,8 +108,8 @@ def _hair_colour_and_style(u, rng, person) -> tuple[float, dict]:
     thickness range and three lengths are drawn whatever the style); and how far the hairline
     recedes (0..1, with age and masculinity)."""
     name, rgb = _hair_colour(rng, person["age"])
-    style = _pick(rng, list(HAIR_STYLES), STYLE_PROBS[person["sex"]])
-    receding = u(0.0, 1.0) * _oldness(person["age"]) * person["masculinity"]
+    style = pick_one(rng, list(HAIR_STYLES), STYLE_PROBS[person["sex"]])
+    receding = u(0.0, 1.0) * oldness(person["age"]) * person["masculinity"]
     thickness = {"bald": 0.0, "crop": u(0.010, 0.018), "side_part": u(0.022, 0.034), "fringe": u(0.02, 0.03),
                  "bob": u(0.022, 0.032), "long": u(0.018, 0.03), "ponytail": u(0.010, 0.016),
                  "bun": u(0.010, 0.016), "afro": u(0.06, 0.10)}[style]
@@ -121,7 +121,7 @@ def _hair_colour_and_style(u, rng, person) -> tuple[float, dict]:
 def _iris(rng, tone) -> str:
     """The iris colour's name; dark eyes are likelier on dark skin (tone > 0.55)."""
     dark = tone > 0.55
-    return _pick(rng, list(IRIS_COLOURS), [0.6, 0.3, 0.06, 0.01, 0.02, 0.01] if dark else [0.12, 0.25, 0.16, 0.14, 0.23, 0.10])
+    return pick_one(rng, list(IRIS_COLOURS), [0.6, 0.3, 0.06, 0.01, 0.02, 0.01] if dark else [0.12, 0.25, 0.16, 0.14, 0.23, 0.10])
 
 
 def _grooming(rng, P) -> dict:
@@ -130,15 +130,15 @@ def _grooming(rng, P) -> dict:
     skin = np.asarray(P["skin_rgb"])
     facial_hair = "none"
     if male:
-        facial_hair = _pick(rng, ["none", "stubble", "moustache", "beard", "goatee"], [0.45, 0.2, 0.07, 0.18, 0.10])
+        facial_hair = pick_one(rng, ["none", "stubble", "moustache", "beard", "goatee"], [0.45, 0.2, 0.07, 0.18, 0.10])
     makeup = (not male) and rng.uniform() < 0.45
     lip_base = skin * np.array([0.86, 0.60, 0.60]) + np.array([0.07, 0.0, 0.01])
     if makeup:
-        paint = _pick(rng, LIPSTICKS)
+        paint = pick_one(rng, LIPSTICKS)
         lip_base = 0.35 * lip_base + 0.65 * np.asarray(paint)
     hair_name, hair_rgb = P["hair_colour"], np.asarray(P["hair_rgb"])
     brow_rgb = hair_rgb * 0.75 if hair_name not in ("dyed", "platinum", "white") else np.asarray(
-        HAIR_COLOURS["brown"]) * (0.7 + 1.2 * (hair_name != "dyed") * _oldness(P["age"]))
+        HAIR_COLOURS["brown"]) * (0.7 + 1.2 * (hair_name != "dyed") * oldness(P["age"]))
     if hair_name in ("blond", "light_brown", "red"):
         brow_rgb = hair_rgb * 0.55
     # Brows stay visible: at most 0.55 of the skin's luminance (grey brows on tan skin vanish otherwise,
@@ -160,7 +160,7 @@ def _profile(u, masc, dim) -> dict:
 
 def _head_shape(u, P, dim) -> dict:
     """Skull, face mass, cheeks, jaw, chin and brow ridge."""
-    masc, weight, old = P["masculinity"], P["weight"], _oldness(P["age"])
+    masc, weight, old = P["masculinity"], P["weight"], oldness(P["age"])
     return {
         "skull_radii": [u(0.182, 0.2) + 0.01 * masc, u(0.215, 0.24), u(0.225, 0.25) + 0.01 * masc],
         "skull_center_y": u(0.035, 0.06),
@@ -178,7 +178,7 @@ def _head_shape(u, P, dim) -> dict:
 
 def _eye_shape(u, P, dim, iris) -> dict:
     """Eyes: x of each eye, the opening's half-width, half-height and tilt, and the iris's colour."""
-    masc, old = P["masculinity"], _oldness(P["age"])
+    masc, old = P["masculinity"], oldness(P["age"])
     return {
         "eye_spacing": u(0.064, 0.098),
         # The opening's height is 0.6-1.0 of the iris's diameter, as in most adults: the lids cover the
@@ -205,19 +205,19 @@ def _nose_shape(u, masc, dim) -> dict:
 def _mouth_shape(u, rng, P, dim) -> dict:
     """The mouth's width and the lips' half-heights; then the eye shadow's colour (drawn for everyone,
     worn with make-up)."""
-    masc, old = P["masculinity"], _oldness(P["age"])
+    masc, old = P["masculinity"], oldness(P["age"])
     return {
         "mouth_width": u(0.034, 0.072) + 0.004 * masc,
         # Half-heights of the lips; at least 0.005 (thinner, a lip is less than a grid voxel thick at 128^3).
         "upper_lip": max(0.005, u(0.006, 0.014) - 0.002 * old + 0.002 * (1 - masc) - 0.003 * dim),
         "lower_lip": max(0.005, u(0.008, 0.018) - 0.002 * old + 0.002 * (1 - masc) - 0.003 * dim),
-        "eye_shadow_rgb": list(np.clip(np.asarray(P["skin_rgb"]) * _pick(rng, EYE_SHADOWS), 0, 1)),
+        "eye_shadow_rgb": list(np.clip(np.asarray(P["skin_rgb"]) * pick_one(rng, EYE_SHADOWS), 0, 1)),
     }
 
 
 def _ears_and_build(u, P) -> dict:
     """Ears, neck and shoulders."""
-    masc, old = P["masculinity"], _oldness(P["age"])
+    masc, old = P["masculinity"], oldness(P["age"])
     return {
         "ear_size": u(0.045, 0.056) + 0.006 * old,
         "ear_protrusion": u(0.0, 1.0),
@@ -231,7 +231,7 @@ def _skin_marks(u, rng, P) -> dict:
     """Blush, shadows under the eyes and the skin's mottling (sinusoids: amplitude, wave vector, phase)."""
     return {
         "cheek_blush": u(0.03, 0.16) * (1.2 if P["makeup"] else 1.0),
-        "under_eye": u(0.03, 0.10) + 0.06 * _oldness(P["age"]),
+        "under_eye": u(0.03, 0.10) + 0.06 * oldness(P["age"]),
         "skin_waves": [[u(0.01, 0.025), list(rng.normal(0, 22, 3)), u(0, 6.3)] for _ in range(4)],
     }
 
@@ -260,13 +260,13 @@ def _hair_shape(u, rng, eye_height, receding) -> dict:
 def _accessories(rng, P) -> dict:
     """Glasses (more often with age), a cap, and the clothing's colour and neckline."""
     return {
-        "glasses": bool(rng.uniform() < 0.12 + 0.12 * _oldness(P["age"])),
-        "glasses_shape": _pick(rng, ["round", "rectangular"]),
-        "glasses_rgb": _frame_rgb(_pick(rng, list(GLASSES_FRAMES)), np.asarray(P["skin_rgb"])),
+        "glasses": bool(rng.uniform() < 0.12 + 0.12 * oldness(P["age"])),
+        "glasses_shape": pick_one(rng, ["round", "rectangular"]),
+        "glasses_rgb": _frame_rgb(pick_one(rng, list(GLASSES_FRAMES)), np.asarray(P["skin_rgb"])),
         "cap": bool(rng.uniform() < 0.1),
         "cap_rgb": list(rng.uniform(0.05, 0.9, 3)),
-        "clothing_rgb": list(np.clip(np.asarray(_pick(rng, CLOTHING_COLOURS)) * rng.uniform(0.85, 1.1, 3), 0, 1)),
-        "neckline": _pick(rng, ["crew", "v", "collar"]),
+        "clothing_rgb": list(np.clip(np.asarray(pick_one(rng, CLOTHING_COLOURS)) * rng.uniform(0.85, 1.1, 3), 0, 1)),
+        "neckline": pick_one(rng, ["crew", "v", "collar"]),
     }
 
 

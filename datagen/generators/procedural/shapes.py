@@ -13,7 +13,7 @@ BOX = 0.48  # the head lives in [-BOX, BOX]^3 (world units)
 HEAD_SCALE = 0.82  # head coordinates -> world: frames the head like an EG3D/FFHQ crop at radius 2.7
 
 
-def _t(v):
+def f32(v):
     return torch.as_tensor(v, dtype=torch.float32)
 
 
@@ -52,7 +52,7 @@ def sd_ellipse_2d(x, y, ax, ay):
     return k0 * (k0 - 1.0) / k1
 
 
-def _segment_2d(x, y, a, b):
+def segment_2d(x, y, a, b):
     """Distance in a plane from points (x, y) to the segment from a to b ((x, y) pairs)."""
     ex, ey = b[0] - a[0], b[1] - a[1]
     vx, vy = x - a[0], y - a[1]
@@ -64,21 +64,21 @@ def sd_triangle_2d(x, y, a, b, c):
     """Exact signed distance in a plane from points (x, y) to the triangle a, b, c ((x, y) pairs, either
     winding); negative inside."""
     edges = ((a, b), (b, c), (c, a))
-    d = torch.minimum(torch.minimum(_segment_2d(x, y, a, b), _segment_2d(x, y, b, c)), _segment_2d(x, y, c, a))
+    d = torch.minimum(torch.minimum(segment_2d(x, y, a, b), segment_2d(x, y, b, c)), segment_2d(x, y, c, a))
     # Inside when the point lies on the same side of all three edges (cross products of one sign).
     side = [(v[0] - u[0]) * (y - u[1]) - (v[1] - u[1]) * (x - u[0]) for u, v in edges]
     inside = ((side[0] >= 0) & (side[1] >= 0) & (side[2] >= 0)) | ((side[0] <= 0) & (side[1] <= 0) & (side[2] <= 0))
     return torch.where(inside, -d, d)
 
 
-def _extrude(d2, h):
+def extrude(d2, h):
     """Exact distance of a 2D region (signed distance d2) extruded to a slab of half-thickness h (h signed
     distance to the slab's mid-plane given as ``h`` = |offset| - half)."""
     outside = torch.stack([d2.clamp_min(0.0), h.clamp_min(0.0)], -1).norm(dim=-1)
     return outside + torch.maximum(d2, h).clamp_max(0.0)
 
 
-def _ellipsoid_front_z(center, radii, x, y):
+def ellipsoid_front_z(center, radii, x, y):
     """z of the front of an axis-aligned ellipsoid at (x, y) (its centre's z beyond the outline)."""
     cx, cy, cz = center
     rx, ry, rz = radii
@@ -97,36 +97,36 @@ def smax(a, b, k):
     return -smin(-a, -b, k)
 
 
-def _smoothstep(e0, e1, x):
+def smoothstep(e0, e1, x):
     t = ((x - e0) / (e1 - e0)).clamp(0.0, 1.0)
     return t * t * (3.0 - 2.0 * t)
 
 
-def _gauss(a, sa):
+def gauss(a, sa):
     return torch.exp(-(a / sa) ** 2)
 
 
-def _interp(x, xs, ys):
+def interp(x, xs, ys):
     """Piecewise-linear y(x) through the knots (xs ascending), constant outside them."""
-    xs_t, ys_t = _t(xs), _t(ys)
+    xs_t, ys_t = f32(xs), f32(ys)
     i = torch.bucketize(x.clamp(xs[0], xs[-1]), xs_t).clamp(1, len(xs) - 1)
     x0, x1, y0, y1 = xs_t[i - 1], xs_t[i], ys_t[i - 1], ys_t[i]
     return y0 + (y1 - y0) * ((x - x0) / (x1 - x0)).clamp(0.0, 1.0)
 
 
-def _waves(p, waves):
+def wave_noise(p, waves):
     """Smooth pseudo-noise: a sum of sinusoids; waves is a list of (amp, (wx, wy, wz), phase)."""
     out = torch.zeros(p.shape[0])
     for amp, w, ph in waves:
-        out = out + amp * torch.sin(p @ _t(w) + ph)
+        out = out + amp * torch.sin(p @ f32(w) + ph)
     return out
 
 
-def _local(p, lo, hi, fn, margin=0.04):
+def near_box(p, lo, hi, fn, margin=0.04):
     """Parts that lie inside the box [lo, hi], evaluated only within ``margin`` of it: fn(points) ->
     [(sdf, rgb or None)]. Elsewhere the distance to the box stands in for each sdf (a lower bound of
     the part's distance, and at least ``margin``, so it changes neither the surface nor its colour)."""
-    lo, hi = _t(lo), _t(hi)
+    lo, hi = f32(lo), f32(hi)
     gap = torch.maximum(lo - p, p - hi).clamp_min(0.0)
     outside = gap.norm(dim=-1)
     idx = torch.nonzero(gap.amax(-1) < margin).squeeze(1)
