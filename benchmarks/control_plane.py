@@ -226,7 +226,7 @@ def write_logs(labels: Path, index: dict, reviewer_plans: dict) -> None:
 def write_slices(root: Path, index: dict, template_records: dict, n: int) -> None:
     """The ``n`` slice files of an array job over the dataset, each subject's record its template's
     (subject i: template i mod the template count) under its id, through ``slices.write_slice``.
-    ``template_records``: :func:`labeling_tool.preflags.pipeline.extract` of the templates."""
+    ``template_records``: :func:`labeling_tool.preflags.scoring.extract` of the templates."""
     from datagen.shards import index_sha256, shard_index
     from labeling_tool.preflags.slices import slice_shards, write_slice
 
@@ -278,7 +278,7 @@ def build(args, slices: bool = True) -> dict:
     last = slice_path(slices_folder(where["dataset"]), args.slices - 1, args.slices)
     if not last.exists() or (slices and json.loads(last.read_text())["detectors_sha256"] != detectors_sha256()):
         from datagen.shards import read_index
-        from labeling_tool.preflags.pipeline import extract
+        from labeling_tool.preflags.scoring import extract
 
         t0 = time.perf_counter()
         write_slices(where["dataset"], read_index(where["dataset"]), extract(where["template"]), args.slices)

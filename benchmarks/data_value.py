@@ -129,7 +129,7 @@ class Study:
 
     def manifest(self, name: str, root: Path, train: list[str], test: list[str] = ()) -> Path:
         """A manifest of ``root`` accepting ``train`` (split train) and ``test`` (split test); the rest rejected."""
-        from labeling_tool.manifest import compile_manifest, write_manifest
+        from labeling_tool.compiler import compile_manifest, write_manifest
         path = self.out / "manifests" / f"{name}.json"
         if not path.exists():
             m = compile_manifest(root, self.out / "labels", unreviewed="accept", test_count=0)

@@ -287,7 +287,7 @@ def throughput(plan: Plan, clock: Clock, scratch: Path) -> dict:
 
 def _training_data(plan: Plan, scratch: Path) -> tuple[Path, Path]:
     from datagen.pipeline import JobSpec, run_sample, software_info
-    from labeling_tool.manifest import compile_manifest, write_manifest
+    from labeling_tool.compiler import compile_manifest, write_manifest
     data = scratch / "train_data"
     if not data.exists():
         spec = JobSpec(out=str(data), gan="procedural", generator_options={}, protocol="360",

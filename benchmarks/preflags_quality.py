@@ -43,7 +43,7 @@ from datagen.defects import INJECTED
 from datagen.files import atomic_write
 from datagen.generators.procedural import ProceduralConfig
 from datagen.preview import contact_sheet
-from labeling_tool.preflags import pipeline
+from labeling_tool.preflags import scoring
 from labeling_tool.preflags.detector import (FALSE_ALARM_RATE, MIN_SUBJECTS, NULL_QUANTILES, NULL_ROUNDS,
                                              calibrated_cuts)
 from labeling_tool.preflags.imaging import robust
@@ -170,12 +170,12 @@ def generate(out: Path, seed: int, rate: float, subjects: int, resolution: int, 
 def scored(root: Path, workers: int) -> tuple[dict, list]:
     """(report, thumbnails in report order), timing included."""
     t0 = time.perf_counter()
-    extracted = pipeline.extract(root, workers)
-    report = pipeline.score(extracted)
+    extracted = scoring.extract(root, workers)
+    report = scoring.score(extracted)
     seconds = time.perf_counter() - t0
     report["timing"] = {"seconds": round(seconds, 2), "subjects_per_second": round(len(report["subjects"]) / seconds, 1),
                         "workers": workers, "load_before": None}
-    return report, pipeline.thumbnails(extracted, report)
+    return report, scoring.thumbnails(extracted, report)
 
 
 def prf(tp: int, fp: int, fn: int) -> dict:

@@ -34,7 +34,7 @@ from datagen.generators.procedural import ProceduralConfig
 from datagen.preflags import write_preflags
 from labeling_tool.preflags import DETECTORS, SubjectViews, measure_subject, score
 from labeling_tool.preflags.janus import CNN_VIEW_PX, best_cnn_face
-from labeling_tool.preflags.pipeline import plan
+from labeling_tool.preflags.scoring import plan
 
 from .common import REPORTS, benchmark_parser, command_line, load_average, machine_info, median, write_json
 from .preflags_quality import generate

@@ -12,7 +12,7 @@ from datagen.errors import SettingError, UserError, optional_import
 from datagen.threads import add_option as add_threads_option
 from datagen.shards import read_index
 
-from .manifest import UNREVIEWED
+from .compiler import UNREVIEWED
 
 
 def window_size(text: str) -> tuple[int, int]:
@@ -249,7 +249,7 @@ def _review(args) -> int:
 
 
 def _compile(args) -> int:
-    from .manifest import compile_manifest, next_version_path, write_manifest
+    from .compiler import compile_manifest, next_version_path, write_manifest
 
     manifest = compile_manifest(args.dataset, args.labels, args.policy, args.unreviewed, args.test_count, args.parent,
                                 skip_unverified=args.skip_incomplete)
@@ -277,7 +277,7 @@ def _compile(args) -> int:
 
 
 def _stats(args) -> int:
-    from .manifest import review_stats
+    from .compiler import review_stats
 
     st = review_stats(args.dataset, args.labels)
     if args.json:

@@ -44,7 +44,7 @@ def tiny_spec(out, **overrides) -> JobSpec:
 def curated_dataset(root, subjects: int, views: int, test_count: int) -> tuple[Path, Path]:
     """A tiny procedural dataset under ``root/ds`` and its manifest (no verdicts, ``test_count`` held
     out): (dataset folder, manifest path)."""
-    from labeling_tool.manifest import compile_manifest, write_manifest
+    from labeling_tool.compiler import compile_manifest, write_manifest
 
     root = Path(root)
     data = root / "ds"

@@ -2,7 +2,7 @@
 from datagen.defects import DEFECT_CLASSES, DEFECTS, INJECTED, REASON_LABELS, REVIEW_REASONS
 from datagen.events import REASONS
 from datagen.generators.procedural import DEFECT_TYPES
-from datagen.generators.procedural.defects import APPLY, APPLY_ORDER, SAMPLE
+from datagen.generators.procedural.inject import APPLY, APPLY_ORDER, SAMPLE
 from labeling_tool.preflags.registry import DETECTOR_NAMES
 from labeling_tool.review.session import FLAG_REASON
 

@@ -71,7 +71,7 @@ def test_the_kit_alone_runs_the_dry_run_on_a_bare_interpreter(tmp_path):
     env = {k: v for k, v in os.environ.items() if k not in ("VIRTUAL_ENV", "PYTHONPATH")}
     env.update(PYTHONPATH=str(site), PANOLAM_SHARED=str(tmp_path / "kit" / "shared"), OMP_NUM_THREADS="1")
     # The project's wheel on its own (away from the checkout): its packages, data and entry point.
-    code = ("import datagen.cli, labeling_tool.manifest, panolam.train; from importlib.resources import files; "
+    code = ("import datagen.cli, labeling_tool.compiler, panolam.train; from importlib.resources import files; "
             "assert (files('panolam') / 'assets' / 'head_template_1280.npz').is_file(); print(datagen.__file__)")
     done = run(py, "-c", code, cwd=tmp_path, env=env)
     assert done.returncode == 0 and done.stdout.startswith(str(site)), done.stderr[-3000:]

@@ -22,7 +22,7 @@ import torch.distributed as dist
 
 from datagen.errors import UserError
 from datagen.manifests import read_manifest
-from labeling_tool.manifest import compile_manifest, write_manifest
+from labeling_tool.compiler import compile_manifest, write_manifest
 from panolam import evaluate as evaluate_module
 from panolam import infer, launch
 from panolam import train as train_module

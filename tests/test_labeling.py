@@ -17,7 +17,7 @@ from labeling_tool.cli import build_queue, main as label_main  # noqa: E402
 from datagen.events import EventLog, parse_event, read_log, read_logs, verdicts  # noqa: E402
 from labeling_tool.review import ReviewApp  # noqa: E402
 from datagen.manifests import read_manifest  # noqa: E402
-from labeling_tool.manifest import compile_manifest, subject_hash  # noqa: E402
+from labeling_tool.compiler import compile_manifest, subject_hash  # noqa: E402
 from datagen.preflags import FORMAT as PREFLAGS_FORMAT, write_preflags  # noqa: E402
 from datagen.errors import UserError  # noqa: E402
 

@@ -893,7 +893,7 @@ def test_truth_folder_is_never_read(synthetic_dataset, tmp_path, monkeypatch):
 
 def test_workers_read_subjects_by_byte_range(synthetic_dataset):
     """What a worker reads through the sidecar's byte range equals a full scan of the tar."""
-    tasks, skipped = preflags.pipeline.plan(synthetic_dataset)
+    tasks, skipped = preflags.scoring.plan(synthetic_dataset)
     assert skipped == [] and len(tasks) == 19
     scanned = {}
     for i in range(3):

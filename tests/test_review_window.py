@@ -35,7 +35,7 @@ from datagen.preview import font  # noqa: E402
 from labeling_tool.review import (BACKGROUND, COLORS, FLAG_REASON, HELP, Layout, Prefetcher,  # noqa: E402
                                   QueueItem, ReviewApp, Window, fit_window, polydata, surface_actor, surface_mesh)
 from labeling_tool.review.layout import NOTICE_COLORS, hud_height, text_line, text_size  # noqa: E402
-from labeling_tool.manifest import compile_manifest  # noqa: E402
+from labeling_tool.compiler import compile_manifest  # noqa: E402
 from labeling_tool.preflags import DETECTOR_NAMES  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -26,7 +26,7 @@ it measured. Scores only order the review queue; nothing is deleted.
 The report format is described in ``datagen.preflags``; ``label-tool auto`` is the command line.
 """
 from .detector import FALSE_ALARM_RATE, FLAG_AT, Detector, Flag
-from .pipeline import extract, measure_subject, score, score_dataset
+from .scoring import extract, measure_subject, score, score_dataset
 from .registry import DETECTOR_NAMES, DETECTORS
 from .views import SubjectViews
 

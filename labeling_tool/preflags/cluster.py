@@ -15,7 +15,7 @@ from datagen.raycluster import ray_connection, ray_results
 from datagen.shards import index_sha256
 
 from .detector import FALSE_ALARM_RATE
-from .pipeline import finish, measure, plan
+from .scoring import finish, measure, plan
 from .registry import DETECTORS
 
 
@@ -28,7 +28,7 @@ def score_on_ray(root, address: str | None = None, progress: bool = False, skip_
                  labels=None, false_alarm_rate: float | None = FALSE_ALARM_RATE) -> dict:
     """The report of the dataset at ``root`` measured by Ray tasks (see the module docstring);
     ``address`` as :func:`datagen.raycluster.ray_connection` takes it, ``labels`` and
-    ``false_alarm_rate`` as in :func:`pipeline.score_dataset`."""
+    ``false_alarm_rate`` as in :func:`scoring.score_dataset`."""
     t0 = time.perf_counter()
     tasks, skipped = plan(root, skip_incomplete)
     by_shard: dict[str, list] = {}

@@ -32,7 +32,7 @@ from datagen.files import atomic_write, read_json
 from datagen.shards import index_sha256, job_shards, read_index, shard_index
 
 from .detector import FALSE_ALARM_RATE
-from .pipeline import extract, finish
+from .scoring import extract, finish
 from .registry import DETECTORS
 
 SLICE_FORMAT = "panolam-preflags-slice/1"
@@ -107,7 +107,7 @@ def slice_shards(root, k: int, n: int, index: dict | None = None) -> list[int]:
 
 def write_slice(root, k: int, n: int, extracted: dict, out=None, detectors=DETECTORS, index: dict | None = None
                 ) -> Path:
-    """Write the records ``extracted`` (:func:`pipeline.extract` of slice ``k`` of ``n``) atomically;
+    """Write the records ``extracted`` (:func:`scoring.extract` of slice ``k`` of ``n``) atomically;
     ``index``: the dataset index (read when None)."""
     skipped = list(extracted["skipped_shards"])
     index = read_index(root) if index is None else index
@@ -123,7 +123,7 @@ def write_slice(root, k: int, n: int, extracted: dict, out=None, detectors=DETEC
 
 
 def read_slices(root, out=None, detectors=DETECTORS) -> dict:
-    """The records of every slice in the folder, as :func:`pipeline.extract` returns them for the
+    """The records of every slice in the folder, as :func:`scoring.extract` returns them for the
     whole dataset (index order; ``seconds``: the slices' measuring time added up). A UserError or
     DatasetError in one line when a slice is missing, stale, from other detector settings, or the
     folder holds slices of two splits."""
@@ -195,7 +195,7 @@ def measure_slice(root, k: int, n: int, out=None, workers: int = 1, progress: bo
 def merge_slices(root, out=None, detectors=DETECTORS, labels=None, false_alarm_rate: float | None = FALSE_ALARM_RATE
                  ) -> dict:
     """The report of the whole dataset from its slices (see :func:`read_slices`); ``labels`` and
-    ``false_alarm_rate`` as in :func:`pipeline.score_dataset`. Its ``timing`` counts the slices' measuring seconds added up
+    ``false_alarm_rate`` as in :func:`scoring.score_dataset`. Its ``timing`` counts the slices' measuring seconds added up
     and the merge's own."""
     t0 = time.perf_counter()
     extracted = read_slices(root, out, detectors)

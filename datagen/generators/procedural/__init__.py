@@ -23,11 +23,11 @@ Modules: ``params`` (sampling a person), ``shapes`` (units, signed-distance buil
 grid), ``generator`` (tracing and rendering; ``ProceduralHeads``).
 """
 from .bake import HeadGrid, bake_head, sample_grid
-from .defects import DEFECT_TYPES, sample_defects
+from .inject import DEFECT_TYPES, sample_defects
 from .field import head_field
 from .generator import ProceduralConfig, ProceduralHeads, laplace_density, sphere_trace, trace_interval
 from .params import HAIR_STYLES, LUMA, SKIN_TONES, sample_params
-from .shapes import BOX, HEAD_SCALE
+from .sdf import BOX, HEAD_SCALE
 
 __all__ = ["BOX", "DEFECT_TYPES", "HAIR_STYLES", "HEAD_SCALE", "LUMA", "SKIN_TONES", "HeadGrid", "ProceduralConfig",
            "ProceduralHeads", "bake_head", "head_field", "laplace_density", "sample_defects", "sample_grid",

@@ -12,7 +12,7 @@ import torch
 import torch.nn.functional as F
 
 from .params import oldness
-from .shapes import (ellipsoid_front_z, extrude, gauss, near_box, segment_2d, smoothstep, f32, wave_noise, sd_capsule,
+from .sdf import (ellipsoid_front_z, extrude, gauss, near_box, segment_2d, smoothstep, f32, wave_noise, sd_capsule,
                      sd_ellipse_2d, sd_ellipsoid, sd_sphere, sd_triangle_2d, smax, smin)
 
 

@@ -10,9 +10,9 @@ import torch.nn.functional as F
 
 from datagen.device import one_cpu_thread
 
-from .defects import smear_back
+from .inject import smear_back
 from .field import head_field
-from .shapes import BOX, f32
+from .sdf import BOX, f32
 
 
 @dataclass

@@ -6,7 +6,7 @@ import math
 import torch
 
 from .anatomy import cranium
-from .shapes import extrude, smoothstep, sd_capsule, sd_ellipsoid, smax, smin
+from .sdf import extrude, smoothstep, sd_capsule, sd_ellipsoid, smax, smin
 
 
 ARM_DEPTH = 1.3  # upper arms: depth (front to back) over width

@@ -6,9 +6,9 @@ import torch
 
 from .anatomy import EYE_RADIUS, anchors_of, eye_centre, face_base, facial_hair_field, face_features, skin_colour
 from .clothing import cap_sdf, glasses_sdf, torso_sdf
-from .defects import effects
+from .inject import effects
 from .hair import hair_field, hair_rgb_of, hair_strands
-from .shapes import HEAD_SCALE, gauss, near_box, f32, wave_noise, sd_sphere, smax, smin
+from .sdf import HEAD_SCALE, gauss, near_box, f32, wave_noise, sd_sphere, smax, smin
 
 
 def head_field(p: torch.Tensor, P: dict, defects: list[dict], colour=True):

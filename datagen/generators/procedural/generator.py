@@ -10,9 +10,9 @@ from ...render import RenderSettings, box_interval, render_rays_chunked
 from ..settings import ProceduralConfig
 from ..base import STREAM_LATENT, STREAM_RENDER, Generator, RenderedViews, Subject, subject_rng
 from .bake import HeadGrid, bake_head, sample_grid
-from .defects import sample_defects
+from .inject import sample_defects
 from .params import sample_params
-from .shapes import BOX, f32
+from .sdf import BOX, f32
 
 
 def laplace_density(sdf: torch.Tensor, beta: float) -> torch.Tensor:

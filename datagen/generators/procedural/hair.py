@@ -7,7 +7,7 @@ import numpy as np
 import torch
 
 from .anatomy import cranium
-from .shapes import gauss, interp, near_box, smoothstep, f32, sd_capsule, sd_ellipsoid, sd_sphere, smax, smin
+from .sdf import gauss, interp, near_box, smoothstep, f32, sd_capsule, sd_ellipsoid, sd_sphere, smax, smin
 
 
 PONYTAIL_RADII = (0.034, 0.022)  # at the tie and at the end (head units; the end at least 2 grid voxels thick)

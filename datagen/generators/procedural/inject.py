@@ -18,7 +18,7 @@ from ...defects import INJECTED
 from .anatomy import cranium, face_features, skin_colour
 from .hair import hair_rgb_of
 from .params import pick_one
-from .shapes import BOX, HEAD_SCALE, near_box, smoothstep, f32, sd_capsule, sd_ellipsoid, sd_sphere, smax
+from .sdf import BOX, HEAD_SCALE, near_box, smoothstep, f32, sd_capsule, sd_ellipsoid, sd_sphere, smax
 
 # The injected classes of the taxonomy (datagen.defects), in its draw order. As modelled here:
 # janus        a second face on the back of the head (eyes, brows, nose, lips), seen through the hair;
