@@ -18,7 +18,6 @@ from __future__ import annotations
 import math
 import multiprocessing as mp
 import os
-import sys
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -28,8 +27,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks.common import (bullets, fmt, load_note, measurement_header, median, psnr_db,
-                               pyplot, report_main, report_name, reproduce, run_sections, stage_clock, table)
+from benchmarks.common import (bullets, fmt, load_note, measurement_header, median, peak_rss_since_reset_mb,
+                               psnr_db, pyplot, report_main, report_name, reproduce, run_sections, stage_clock, table)
 from datagen.cameras import sample_views
 from datagen.generators.base import STREAM_CAMERAS, STREAM_LATENT, subject_rng
 from datagen.generators.procedural import ProceduralConfig, ProceduralHeads, bake, generator, sample_params
@@ -277,29 +276,15 @@ def sample_sweep(plan: Plan) -> dict:
 # ------------------------------------------------------------------------------------------------
 # 5. Bake grid resolution: time and memory
 
-def peak_rss_mb() -> float:
-    """Peak resident memory of this process image: VmHWM on Linux (ru_maxrss would include the
-    parent's memory at fork), ru_maxrss elsewhere."""
-    status = Path("/proc/self/status")
-    if status.exists():
-        for line in status.read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 2 ** 10  # kB
-    import resource
-
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return rss / 2 ** 20 if sys.platform == "darwin" else rss / 2 ** 10  # bytes on macOS, KiB on Linux
-
-
 def peak_memory_child(grid_resolution: int) -> dict:
     """Run in a fresh process: peak resident memory added by one bake, then by rendering 32 views."""
     gen = generator(grid_resolution=grid_resolution)
     views = views_of(0)
-    base = peak_rss_mb()
+    base = peak_rss_since_reset_mb()
     subject = gen.sample_subject(SEED, 0)
-    after_bake = peak_rss_mb()
+    after_bake = peak_rss_since_reset_mb()
     gen.render(subject, views, 128)
-    return {"bake_peak_mb": after_bake - base, "bake_render_peak_mb": peak_rss_mb() - base}
+    return {"bake_peak_mb": after_bake - base, "bake_render_peak_mb": peak_rss_since_reset_mb() - base}
 
 
 def peak_memory(grid_resolution: int) -> dict:

@@ -23,7 +23,7 @@ from ..cameras import (EG3D_FOCAL, ViewSet, camera_position, conditioning_vector
 from ..device import resolve_device
 from ..gans.checkpoint import LoadedCheckpoint, read_checkpoint
 from ..render import render_rays_chunked
-from .settings import NOT_RECORDED, GANConfig
+from .settings import NAMED_COLOURS, NOT_RECORDED, GANConfig
 from .base import STREAM_LATENT, STREAM_RENDER, Generator, RenderedViews, Subject, subject_rng
 
 BACKGROUNDS = ("own", "black", "white", "grey")
@@ -69,8 +69,7 @@ def chunk_plan(G, budget_bytes: float, fp16: bool) -> ChunkPlan:
 
 
 def _solid(background):
-    named = {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0), "grey": (0.5, 0.5, 0.5)}
-    return named.get(background, background) if background != "own" else None
+    return NAMED_COLOURS.get(background, background) if background != "own" else None
 
 
 class GANHeads(Generator):

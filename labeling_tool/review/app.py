@@ -169,7 +169,7 @@ class ReviewApp:
     # -- keys ---------------------------------------------------------------------------------------
     def _bind_keys(self):
         everywhere = {"z": self.undo, "h": self.toggle_help, "question": self.toggle_help, "Escape": self.key_escape}
-        names = set(everywhere).union(*(m.keys() for m in (self.grid, self.surface, self.triage)))
+        names = set(everywhere).union(*(m.bindings for m in (self.grid, self.surface, self.triage)))
         self.window.bind({key: self._guarded(key, everywhere.get(key)) for key in names})
         self.window.observe("LeftButtonPressEvent", self._on_click)
         self.window.observe("ConfigureEvent", self._on_resize)
@@ -180,7 +180,7 @@ class ReviewApp:
         def handler():
             if key != "Escape":
                 self.quit_armed = False
-            action = everywhere or self.current.keys().get(key)
+            action = everywhere or self.current.bindings.get(key)
             if action is None:
                 return
             try:

@@ -8,6 +8,8 @@ the next subject's views; in triage they mark the cell under the cursor, written
 """
 from __future__ import annotations
 
+from functools import cached_property
+
 from .layout import REVIEW_KEYS, TRIAGE_KEYS, VIEW3D_KEYS, Layout, cell_state, review_frame, triage_page
 from .session import QueueItem
 from .surface import frame_front, polydata, subject_surface, surface_actor
@@ -24,8 +26,13 @@ class Mode:
     def __init__(self, app):
         self.app, self.session = app, app.session
 
+    @cached_property
+    def bindings(self) -> dict:
+        """key name -> action, for the keys this mode answers (made once, on the first key)."""
+        return self.keys()
+
     def keys(self) -> dict:
-        """key name -> action, for the keys this mode answers."""
+        """The table :attr:`bindings` holds."""
         return {}
 
     def show(self):
@@ -48,9 +55,7 @@ class GridMode(Mode):
     name = "review"
 
     def keys(self) -> dict:
-        app = self.app
-        return {**verdict_keys(app), "n": app.next, "Right": app.next, "p": app.previous, "Left": app.previous,
-                "u": app.next_unreviewed, "v": app.surface.open, "t": app.triage.open}
+        return {**subject_keys(self.app), "v": self.app.surface.open}
 
     def show(self):
         app, size, item = self.app, self.app.window_size(), self.session.item
@@ -94,9 +99,7 @@ class SurfaceMode(Mode):
         self._bounds = None
 
     def keys(self) -> dict:
-        app = self.app
-        return {**verdict_keys(app), "n": app.next, "Right": app.next, "p": app.previous, "Left": app.previous,
-                "u": app.next_unreviewed, "v": app.grid.open, "t": app.triage.open, "r": self.reframe}
+        return {**subject_keys(self.app), "v": self.app.grid.open, "r": self.reframe}
 
     def arrays_of(self, item: QueueItem, frame):
         return subject_surface(self.app.reader, item, frame.meta)
@@ -258,9 +261,11 @@ class TriageMode(Mode):
         return cell_state(self.session, item)
 
 
-def verdict_keys(app) -> dict:
-    """The verdict keys of the grid and the 3D view: g good, s skip, 1-5 bad with that reason."""
-    keys = {"g": lambda: app.verdict("good"), "s": lambda: app.verdict("skip")}
+def subject_keys(app) -> dict:
+    """The keys of the grid and the 3D view, which show one subject: g good, s skip, 1-5 bad with that reason,
+    moving through the queue (n/Right, p/Left, u) and t to triage."""
+    keys = {"g": lambda: app.verdict("good"), "s": lambda: app.verdict("skip"), "n": app.next, "Right": app.next,
+            "p": app.previous, "Left": app.previous, "u": app.next_unreviewed, "t": app.triage.open}
     for key, reason in app.reason_keys.items():
         keys[key] = (lambda r=reason: app.verdict("bad", (r,)))
     return keys
