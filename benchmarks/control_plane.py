@@ -95,7 +95,7 @@ def make_templates(where: Path, args) -> None:
 def templates_match(where: Path, args) -> bool:
     """Whether ``where`` holds complete templates made with ``args``' settings."""
     from datagen.errors import DatasetError
-    from datagen.shards import is_complete, read_index
+    from datagen.dataset.shards import is_complete, read_index
 
     try:
         s = read_index(where)["settings"]
@@ -107,7 +107,7 @@ def templates_match(where: Path, args) -> bool:
 
 def read_templates(where: Path) -> tuple[dict, list]:
     """The template dataset's index and its subjects as (fields {field: bytes} in tar order, truth)."""
-    from datagen.shards import iter_tar_samples, read_index, tar_path
+    from datagen.dataset.shards import iter_tar_samples, read_index, tar_path
 
     index = read_index(where)
     truth = json.loads((where / "truth" / "shard-000000.json").read_text())
@@ -130,9 +130,9 @@ def write_dataset(root: Path, template_index: dict, templates: list, subjects: i
 
 
 def write_shard(root: Path, shard: int, subjects: range, templates: list, views: int) -> None:
-    """Shard ``shard`` of the big dataset through :class:`datagen.shards.ShardWriter`: subject i is template
+    """Shard ``shard`` of the big dataset through :class:`datagen.dataset.shards.ShardWriter`: subject i is template
     i mod the template count, its metadata naming it (the bytes ``dumps`` gives that metadata)."""
-    from datagen.shards import ShardWriter, subject_id
+    from datagen.dataset.shards import ShardWriter, subject_id
 
     writer = ShardWriter(root, shard)
     for i in subjects:
@@ -145,7 +145,7 @@ def write_shard(root: Path, shard: int, subjects: range, templates: list, views:
 
 
 def renamed_metadata(data: bytes, key: str, index: int) -> bytes:
-    """A subject's canonical metadata bytes (:func:`datagen.shards.dumps`) with its ``subject_id`` and
+    """A subject's canonical metadata bytes (:func:`datagen.dataset.shards.dumps`) with its ``subject_id`` and
     ``subject_index`` set to ``key`` and ``index``: the same bytes ``dumps`` gives the changed metadata,
     without its (slow, indented) encoding."""
     meta = json.loads(data)
@@ -160,7 +160,7 @@ def renamed_metadata(data: bytes, key: str, index: int) -> bytes:
 def reviewer_plan(reviewer: int, subjects: list[str], defective: np.ndarray, seed: int) -> list[tuple]:
     """One reviewer's events in order, (subject, action, reasons): a verdict for every subject (bad
     with a reason drawn from the review reasons, skip, or good), some of them undone and given again."""
-    from datagen.events import REASONS
+    from datagen.dataset.events import REASONS
 
     rng = np.random.default_rng([seed, reviewer])
     draws = rng.random((len(subjects), 3))
@@ -209,8 +209,8 @@ def plans(root: Path, index: dict, seed: int) -> dict[str, list[tuple]]:
 
 
 def write_logs(labels: Path, index: dict, reviewer_plans: dict) -> None:
-    """Each reviewer's plan through :class:`datagen.events.EventLog`, ``LOG_CHUNK`` events per append."""
-    from datagen.events import EventLog
+    """Each reviewer's plan through :class:`datagen.dataset.events.EventLog`, ``LOG_CHUNK`` events per append."""
+    from datagen.dataset.events import EventLog
 
     shard_of = dict(subject_list(index))
     for name, events in reviewer_plans.items():
@@ -223,23 +223,23 @@ def write_logs(labels: Path, index: dict, reviewer_plans: dict) -> None:
             log.close()
 
 
-def write_slices(root: Path, index: dict, template_records: dict, n: int) -> None:
+def write_slices(root: Path, template_records: dict, n: int) -> None:
     """The ``n`` slice files of an array job over the dataset, each subject's record its template's
     (subject i: template i mod the template count) under its id, through ``slices.write_slice``.
     ``template_records``: :func:`labeling_tool.preflags.scoring.extract` of the templates."""
-    from datagen.shards import index_sha256, shard_index
+    from datagen.dataset import Dataset
     from labeling_tool.preflags.slices import slice_shards, write_slice
 
-    index_sha = index_sha256(root)
-    position = {s: i for i, (s, _) in enumerate(subject_list(index))}
-    by_number = {shard_index(sh["name"]): sh for sh in index["shards"]}
+    dataset = Dataset(root)
+    position = {s: i for i, (s, _) in enumerate(subject_list(dataset.index))}
+    by_number = dict(zip(dataset.shard_numbers, dataset.shards))
     seconds_each = template_records["seconds"] / len(template_records["records"])
     records = [r for _, r in template_records["records"]]
     for k in range(n):
         mine = [(sh["name"], dict(records[position[s] % len(records)], key=s))
-                for i in slice_shards(root, k, n, index) for sh in [by_number[i]] for s in sh["subjects"]]
-        write_slice(root, k, n, {"index_sha256": index_sha, "records": mine, "skipped_shards": [],
-                                 "seconds": seconds_each * len(mine)}, index=index)
+                for i in slice_shards(dataset, k, n) for sh in [by_number[i]] for s in sh["subjects"]]
+        write_slice(dataset, k, n, {"index_sha256": dataset.index_sha256, "records": mine, "skipped_shards": [],
+                                    "seconds": seconds_each * len(mine)})
 
 
 def build(args, slices: bool = True) -> dict:
@@ -277,11 +277,10 @@ def build(args, slices: bool = True) -> dict:
                   "bytes": {name: folder_bytes(where[name]) for name in ("dataset", "labels")}}
     last = slice_path(slices_folder(where["dataset"]), args.slices - 1, args.slices)
     if not last.exists() or (slices and json.loads(last.read_text())["detectors_sha256"] != detectors_sha256()):
-        from datagen.shards import read_index
         from labeling_tool.preflags.scoring import extract
 
         t0 = time.perf_counter()
-        write_slices(where["dataset"], read_index(where["dataset"]), extract(where["template"]), args.slices)
+        write_slices(where["dataset"], extract(where["template"]), args.slices)
         record["seconds"]["slices"] = time.perf_counter() - t0
         record["bytes"]["slices"] = folder_bytes(slices_folder(where["dataset"]))
         stamp.write_text(json.dumps(record, indent=1) + "\n")
@@ -297,7 +296,7 @@ def folder_bytes(folder: Path) -> int:
 
 
 def op_resume(where: dict) -> dict:
-    from datagen.events import EventLog
+    from datagen.dataset.events import EventLog
 
     log = EventLog(where["labels"], RESUMED)
     result = {"events": len(log.events), "verdicts": len(log.verdicts()), "problems": len(log.problems)}
@@ -321,7 +320,7 @@ def op_open(where: dict) -> dict:
 
 
 def op_merge(where: dict) -> dict:
-    from datagen.preflags import write_preflags
+    from datagen.dataset.preflags import write_preflags
     from labeling_tool.preflags.slices import merge_slices
 
     report = merge_slices(where["dataset"])
@@ -331,7 +330,7 @@ def op_merge(where: dict) -> dict:
 
 
 def op_compile(where: dict, cold: bool) -> dict:
-    from datagen.shards import SHARD_CHECKS
+    from datagen.dataset.shards import SHARD_CHECKS
     from labeling_tool.cli import main
 
     if cold:
@@ -470,7 +469,7 @@ def render(results: dict) -> str:
 def checks(results: dict, out: Path) -> list[str]:
     """What the operations' results must be, from the build's own plans; each line says what agreed.
     A RuntimeError names the first that does not."""
-    from datagen.shards import read_index
+    from datagen.dataset.shards import read_index
 
     where = paths(out)
     index = read_index(where["dataset"])

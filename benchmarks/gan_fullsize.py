@@ -34,7 +34,7 @@ from datagen.generators.gan import GANConfig, GANHeads
 from datagen.gans.checkpoint import LoadedCheckpoint
 from datagen.gans.kinds import GAN_KINDS, KINDS
 from datagen.gans.triplane import TriPlaneGenerator
-from datagen.shards import encode_subject
+from datagen.dataset.shards import encode_subject
 
 NAME = "gan_fullsize"
 MODELS = KINDS

@@ -48,7 +48,7 @@ from benchmarks.common import (REPORTS, add_work_folder, benchmark_parser, bulle
                                machine_info, report_stem, reproduce, table, write_report)
 from datagen.pipeline import JobSpec, make_index, run_sample, software_info
 from datagen.files import atomic_write
-from datagen.shards import INDEX_NAME, ShardWriter, dumps, iter_tar_samples, read_index, subject_id
+from datagen.dataset.shards import INDEX_NAME, ShardWriter, dumps, iter_tar_samples, read_index, subject_id
 
 SCREEN = (1920, 1080)
 GOALS_MS = {"next": 150, "verdict": 150, "triage_page": 300, "view3d_on": 500}

@@ -44,7 +44,7 @@ import torch
 
 from benchmarks.common import (HERE, REPORTS, machine_info, peak_rss_since_reset_mb, pyplot,
                                reset_peak_rss, run_child, table, write_report)
-from datagen.manifests import read_manifest
+from datagen.dataset.manifests import read_manifest
 from panolam.evaluate import EVAL_VIEWS, MeanColourTemplate, evaluate, mean_foreground_colour
 from panolam.evaluate import paired_difference as per_subject_difference
 from panolam.model import PanoLAM

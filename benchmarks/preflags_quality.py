@@ -43,6 +43,7 @@ from datagen.defects import INJECTED
 from datagen.files import atomic_write
 from datagen.generators.procedural import ProceduralConfig
 from datagen.preview import contact_sheet
+from datagen.runner import Placement
 from labeling_tool.preflags import scoring
 from labeling_tool.preflags.detector import (FALSE_ALARM_RATE, MIN_SUBJECTS, NULL_QUANTILES, NULL_ROUNDS,
                                              calibrated_cuts)
@@ -170,7 +171,7 @@ def generate(out: Path, seed: int, rate: float, subjects: int, resolution: int, 
 def scored(root: Path, workers: int) -> tuple[dict, list]:
     """(report, thumbnails in report order), timing included."""
     t0 = time.perf_counter()
-    extracted = scoring.extract(root, workers)
+    extracted = scoring.extract(root, Placement(("cpu",) * workers))
     report = scoring.score(extracted)
     seconds = time.perf_counter() - t0
     report["timing"] = {"seconds": round(seconds, 2), "subjects_per_second": round(len(report["subjects"]) / seconds, 1),

@@ -31,7 +31,8 @@ import time
 from pathlib import Path
 
 from datagen.generators.procedural import ProceduralConfig
-from datagen.preflags import write_preflags
+from datagen.dataset import Dataset
+from datagen.dataset.preflags import write_preflags
 from labeling_tool.preflags import DETECTORS, SubjectViews, measure_subject, score
 from labeling_tool.preflags.janus import CNN_VIEW_PX, best_cnn_face
 from labeling_tool.preflags.scoring import plan
@@ -48,7 +49,8 @@ GOALS = {128: 5.0, 512: PAPER_SUBJECTS / (CLUSTER_CORES * 3600.0)}  # subjects/s
 def measure_dataset(root: Path) -> dict:
     """Per subject: read+decode and each detector's CPU seconds; the whole run's wall and CPU seconds; the
     same with the CNN on every back view; whether that changes any score or flag."""
-    tasks, _ = plan(root)
+    dataset = Dataset(root)
+    tasks, _ = plan(dataset)
     stages = {"read+decode": []} | {d.name: [] for d in DETECTORS}
     records, everywhere, cnn_cpu, cnn_wall, skipped_cpu = [], [], [], [], []
     wall0, cpu0 = time.perf_counter(), time.process_time()
@@ -75,7 +77,7 @@ def measure_dataset(root: Path) -> dict:
             janus = dict(janus, cnn=confidence)
         everywhere.append((shard, dict(record, measured=dict(measured, janus=janus))))
     wall, cpu = time.perf_counter() - wall0 - sum(cnn_wall), time.process_time() - cpu0 - sum(cnn_cpu)
-    index_sha = hashlib.sha256((root / "index.json").read_bytes()).hexdigest()
+    index_sha = dataset.index_sha256
     report = score({"index_sha256": index_sha, "records": records, "skipped_shards": []})
     reference = score({"index_sha256": index_sha, "records": everywhere, "skipped_shards": []})
     verdicts = {r["subject"]: (r["flags"], {k: d["score"] for k, d in r["detectors"].items()})

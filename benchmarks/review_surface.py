@@ -38,7 +38,7 @@ from benchmarks.common import (REPO, add_work_folder, benchmark_parser, command_
 from datagen.cameras import depth_points
 from datagen.errors import UserError
 from datagen.pipeline import JobSpec, run_sample, software_info
-from datagen.shards import INDEX_NAME, decode_exr, iter_tar_samples
+from datagen.dataset.shards import INDEX_NAME, decode_exr, iter_tar_samples
 from labeling_tool.review.layout import Layout, fit_square
 from labeling_tool.review.reader import decode_image
 from labeling_tool.review.surface import OPAQUE, project, renders_from_views, surface_errors, surface_mesh

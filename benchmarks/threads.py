@@ -51,7 +51,7 @@ def prepare(out: Path) -> None:
         if not (out / made).exists():
             subprocess.run(argv, cwd=out, check=True, stdout=subprocess.DEVNULL)
     if not (out / "photo.png").exists():
-        from datagen.shards import decode_sample, read_fields
+        from datagen.dataset.shards import decode_sample, read_fields
         from PIL import Image
         key = json.loads((out / "data" / "index.json").read_text())["shards"][0]["subjects"][0]
         sample = decode_sample(key, read_fields(out / "data", 0, key), views=[0], depth=False)

@@ -10,7 +10,9 @@ from .errors import SettingError, UserError
 from .threads import add_option as add_threads_option
 from .text import byte_size, plural, readable
 from .generators.settings import GANConfig, ProceduralConfig
+from .dataset import Dataset
 from .job import JobSpec
+from .verify import VerifyOptions
 
 
 def parse_workers(text: str):
@@ -50,7 +52,8 @@ def build_parser() -> OneLineParser:
 
     v = sub.add_parser("verify", help="check checksums, decoding, counts and metadata of a dataset")
     v.add_argument("dataset", help="dataset folder (datagen sample --out)")
-    v.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_options(v, VerifyOptions)
+    add_threads_option(v, "each worker process (or Ray task)")
 
     pv = sub.add_parser("preview", help="write a contact sheet PNG of one subject's views")
     pv.add_argument("dataset", help="dataset folder (datagen sample --out)")
@@ -123,15 +126,22 @@ def _sample(args) -> int:
 
 
 def _verify(args) -> int:
+    from .dataset.shards import job_shards
     from .verify import verify_dataset
 
-    report = verify_dataset(args.dataset, progress=not args.quiet)
+    opts = VerifyOptions(**given(args, VerifyOptions))
+    dataset = Dataset(args.dataset)
+    shards = None
+    if opts.num_shards > 1 or opts.shard_index:
+        mine = set(job_shards(max(dataset.shard_numbers, default=-1) + 1, opts.shard_index, opts.num_shards))
+        shards = [n for n in dataset.shard_numbers if n in mine]
+    report = verify_dataset(dataset, not opts.quiet, opts.placement(args.threads), shards)
     for line in report["problems"]:
         print(f"problem: {line}")
     for path in report["stray"]:
         print(f"note: leftover temporary file {path} (an interrupted run; --resume removes it)")
     status = "OK" if not report["problems"] else "FAILED"
-    print(f"{status}: {report['complete']}/{report['shards']} shards complete and valid, {report['subjects']} subjects")
+    print(f"{status}: {report['complete']}/{report['shards']} shards complete and valid, {plural(report['subjects'], 'subject')}")
     return 0 if not report["problems"] else 1
 
 
@@ -147,12 +157,13 @@ def _export(args) -> int:
     from .export import check_subjects, complete_subjects, export_subject
     from .preview import parse_subject
 
-    subjects = [parse_subject(s) for s in args.subject] if args.subject else complete_subjects(args.dataset)
-    subjects = check_subjects(args.dataset, subjects)  # every one, before anything is written
+    dataset = Dataset(args.dataset)
+    subjects = [parse_subject(s) for s in args.subject] if args.subject else complete_subjects(dataset)
+    subjects = check_subjects(dataset, subjects)  # every one, before anything is written
     if not subjects:
         raise UserError(f"{args.dataset}: no complete shards to export (see datagen verify)")
     for key in subjects:
-        done = export_subject(args.dataset, key, args.format, args.out, args.background)
+        done = export_subject(dataset, key, args.format, args.out, args.background)
         note = (f"; 3DGS's one camera_angle_x (the median) is off by up to {done['file_fov_max_px_error']:.2f} px"
                 if "file_fov_max_px_error" in done else "")
         print(f"wrote {done['path']} ({args.format}, {done['views']} views{note})")
@@ -179,8 +190,9 @@ def _info(args) -> int:
     from .preview import dataset_info
     from .shapes import shapes_summary
 
-    info = dataset_info(args.dataset)
-    info["shapes"] = shapes_summary(args.dataset)
+    dataset = Dataset(args.dataset)
+    info = dataset_info(dataset)
+    info["shapes"] = shapes_summary(dataset)
     if args.json:
         print(json.dumps(info, indent=1, sort_keys=True))
     else:

@@ -1,7 +1,7 @@
 """``datagen export``: subjects' views and cameras in the layouts of nerfstudio, instant-ngp/Blender
 (what graphdeco's 3DGS ``train.py`` reads) and COLMAP text.
 
-Source conventions (``datagen/cameras.py``, ``datagen/shards.py``): OpenCV cam2world (x right, y
+Source conventions (``datagen/cameras.py``, ``datagen/dataset/shards.py``): OpenCV cam2world (x right, y
 down, z forward), intrinsics normalized by image size, pixel centres at half-integers of pixel K,
 depth = distance along the unit ray from the camera centre (world units, 0 where alpha is 0).
 Targets: nerfstudio and instant-ngp/Blender take OpenGL cam2world (x right, y up, z backward);
@@ -25,17 +25,8 @@ import numpy as np
 from .cameras import camera_directions, depth_points, pixel_intrinsics
 from .errors import DatasetError
 from .files import atomic_write
-from .shards import (
-    INDEX_NAME,
-    dumps,
-    encode_png,
-    is_complete,
-    read_index,
-    read_sidecar,
-    read_subject,
-    shard_index,
-    tar_path,
-)
+from .dataset import Dataset
+from .dataset.shards import dumps, encode_png, is_complete, read_sidecar, tar_path
 
 FORMATS = ("nerfstudio", "instant-ngp", "colmap")
 BACKGROUNDS = {"transparent": None, "white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
@@ -137,11 +128,11 @@ def fov_pixel_error(K_norm_views, alphas, file_angle_x: float) -> float:
 # ----------------------------------------------------------------------------------------------
 # One subject, read once
 
-class SubjectViews:
+class ExportViews:
     """One subject's views ready to export: names, cam2world (OpenCV), normalized K, images, depth."""
 
-    def __init__(self, root, key: str, background: str):
-        sample = read_subject(root, key)
+    def __init__(self, dataset: Dataset, key: str, background: str):
+        sample = dataset.read_subject(key)
         meta = sample.metadata
         source_bg = meta.get("background")
         source_bg = source_bg if isinstance(source_bg, list) and len(source_bg) == 3 else None
@@ -173,7 +164,7 @@ def _write_json(path: Path, doc: dict) -> None:
     atomic_write(path, (json.dumps(doc, indent=1) + "\n").encode())
 
 
-def _write_views(folder: Path, views: SubjectViews, images: str, depth: str | None) -> None:
+def _write_views(folder: Path, views: ExportViews, images: str, depth: str | None) -> None:
     """Images ``<images>/vII.png`` and, with ``depth``, z-depth PNGs ``<depth>/vII.png``."""
     (folder / images).mkdir(parents=True)
     for name, image in zip(views.names, views.images):
@@ -197,7 +188,7 @@ def _write_ply(path: Path, points) -> None:
     atomic_write(path, lambda f: PlyData([PlyElement.describe(vertex, "vertex")]).write(f))
 
 
-def _opengl_frame(views: SubjectViews, i: int) -> dict:
+def _opengl_frame(views: ExportViews, i: int) -> dict:
     return {"transform_matrix": opengl_cam2world(views.cam2world[i]).tolist(),
             **pixel_camera(views.K[i], views.width, views.height)}
 
@@ -205,7 +196,7 @@ def _opengl_frame(views: SubjectViews, i: int) -> dict:
 # ----------------------------------------------------------------------------------------------
 # Formats: each writes one subject into ``folder`` and returns notes for the summary
 
-def export_nerfstudio(views: SubjectViews, folder: Path) -> dict:
+def export_nerfstudio(views: ExportViews, folder: Path) -> dict:
     """``transforms.json`` (OpenGL cam2world, per-frame ``fl_x fl_y cx cy``, ``depth_file_path``),
     ``images/vII.png``, ``depth/vII.png`` (z-depth, mm)."""
     _write_views(folder, views, "images", "depth")
@@ -216,7 +207,7 @@ def export_nerfstudio(views: SubjectViews, folder: Path) -> dict:
     return {}
 
 
-def export_instant_ngp(views: SubjectViews, folder: Path) -> dict:
+def export_instant_ngp(views: ExportViews, folder: Path) -> dict:
     """``transforms_train.json`` / ``transforms_test.json`` (every 8th view from v00 is a test view):
     OpenGL cam2world; per frame ``camera_angle_x`` and ``fl_x fl_y cx cy w h`` (instant-ngp reads
     these), file-level ``camera_angle_x`` the median (3DGS reads only this one); ``file_path`` without
@@ -238,9 +229,9 @@ def export_instant_ngp(views: SubjectViews, folder: Path) -> dict:
     return {"file_fov_max_px_error": fov_pixel_error(views.K, views.alpha, file_angle)}
 
 
-def export_colmap(views: SubjectViews, folder: Path) -> dict:
+def export_colmap(views: ExportViews, folder: Path) -> dict:
     """``images/vII.png`` and ``sparse/0/{cameras,images,points3D}.txt``: one PINHOLE camera per view
-    (``fx fy cx cy`` in pixels), world-to-camera poses, the depth points (:meth:`SubjectViews.points`)
+    (``fx fy cx cy`` in pixels), world-to-camera poses, the depth points (:meth:`ExportViews.points`)
     with a one-image track each (their pixel centre in ``images.txt``)."""
     _write_views(folder, views, "images", None)
     sparse = folder / "sparse" / "0"
@@ -267,23 +258,23 @@ EXPORTERS = {"nerfstudio": export_nerfstudio, "instant-ngp": export_instant_ngp,
 # ----------------------------------------------------------------------------------------------
 # Datasets
 
-def complete_subjects(root) -> list[str]:
+def complete_subjects(dataset: Dataset) -> list[str]:
     """Subject ids of the dataset's complete shards, in index order."""
-    return [s for shard in read_index(root)["shards"] if is_complete(root, shard_index(shard["name"]))
-            for s in shard["subjects"]]
+    complete = set(dataset.complete_shards())
+    return [s for s in dataset.subjects if dataset.shard_of[s] in complete]
 
 
-def check_subjects(root, keys) -> list[str]:
+def check_subjects(dataset: Dataset, keys) -> list[str]:
     """``keys`` without repeats, once every one is known to be readable: in the dataset's index, in a
     complete shard (its sidecar, and its tar at the recorded size) that records the subject's byte
     range. Otherwise one DatasetError naming the dataset and every subject that is not (at most
     three, then how many more), before anything is written."""
-    shard_of = {s: shard_index(shard["name"]) for shard in read_index(root)["shards"] for s in shard["subjects"]}
+    root, shard_of = dataset.root, dataset.shard_of
     keys = list(dict.fromkeys(keys))
     problems = []
     for key in keys:
         if key not in shard_of:
-            problems.append(f"{Path(root) / INDEX_NAME}: no subject {key} in this dataset")
+            problems.append(f"{dataset.index_path}: no subject {key} in this dataset")
         elif not is_complete(root, shard_of[key]):
             problems.append(f"{tar_path(root, shard_of[key])}: the shard holding {key} is not complete "
                             "(see datagen verify)")
@@ -295,17 +286,17 @@ def check_subjects(root, keys) -> list[str]:
     return keys
 
 
-def export_subject(root, key: str, fmt: str, out, background: str = "transparent") -> dict:
+def export_subject(dataset: Dataset, key: str, fmt: str, out, background: str = "transparent") -> dict:
     """Export one subject to ``out/<key>/`` (replacing an earlier export) all or nothing; a summary."""
     out = Path(out)
-    views = SubjectViews(root, key, background)
+    views = ExportViews(dataset, key, background)
     out.mkdir(parents=True, exist_ok=True)
     final, tmp = out / key, out / f".{key}.tmp-{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
     try:
         notes = EXPORTERS[fmt](views, tmp)
-        atomic_write(tmp / "export.json", dumps({"source": str(Path(root).resolve()), "subject": key,
+        atomic_write(tmp / "export.json", dumps({"source": str(dataset.root.resolve()), "subject": key,
                                                  "format": fmt, "background": background, **notes}))
         old = out / f".{key}.old-{os.getpid()}"
         if final.exists():

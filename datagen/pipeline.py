@@ -7,11 +7,9 @@ shard number, so any backend, worker count or cluster split produces the same by
 from __future__ import annotations
 
 import errno
-import os
 import platform
 import subprocess
 import time
-from contextlib import closing
 from dataclasses import replace
 from pathlib import Path
 
@@ -20,18 +18,18 @@ import torch
 
 from . import __version__
 from .cameras import protocol_pivot, sample_views
-from .device import ray_task_device, worker_devices
+from .device import worker_devices
 from .errors import SettingError, UserError
 from .command_line import progress_bar
 from .job import JobSpec
 from .files import LockBusy, atomic_write, byte_lock
 from .generators import GANS, make_generator
 from .generators.base import STREAM_CAMERAS, subject_rng
-from .raycluster import ray_connection, ray_results
+from .runner import Placement, run_tasks
 from .shapes import encode_mesh, extract_shape
-from .shards import (FORMAT, INDEX_NAME, ShardWriter, dumps, encode_subject, is_complete, job_shards,
+from .dataset.shards import (FORMAT, INDEX_NAME, ShardWriter, dumps, encode_subject, is_complete, job_shards,
                      read_index, remove_partial, shard_name, subject_id, tar_path, view_name)
-from .threads import choose, usable_cpus, use
+from .threads import usable_cpus
 
 DEPTH_MEANING = "distance along the unit ray from the camera centre, world units; 0 where alpha is 0"
 CAMERA_CONVENTION = ("OpenCV cam2world (x right, y down, z forward); intrinsics normalized by image size; "
@@ -166,115 +164,16 @@ def on_device(spec: JobSpec, device: str) -> JobSpec:
     return replace(spec, generator_options={**spec.generator_options, "device": device})
 
 
-def _enter_worker(threads: int, device: str) -> None:
-    """Set up a worker process (or a Ray task) to render on ``device`` with ``threads`` CPU threads.
-    A CUDA worker makes its GPU the current one, so nothing it runs lands on another."""
-    use(threads)
-    if device.startswith("cuda"):
-        torch.cuda.set_device(torch.device(device))
+def _shard_task(spec: JobSpec, shard: int, device: str, report) -> dict:
+    """The runner's task (:mod:`datagen.runner`): render and publish one shard on ``device``."""
+    return write_shard(on_device(spec, device), shard, progress=report)
 
 
-_WORKER: tuple | None = None  # in a local worker process: (progress queue, its device)
-
-
-def _init_worker(threads: int, progress, devices) -> None:
-    """Pool initializer: each worker process takes the next device from the ``devices`` queue."""
-    global _WORKER
-    device = devices.get()
-    _enter_worker(threads, device)
-    _WORKER = (progress, device)
-
-
-def _pool_task(spec: JobSpec, shard: int) -> dict:
-    progress, device = _WORKER
-    return write_shard(on_device(spec, device), shard, progress=progress.put)
-
-
-def _run_local(spec: JobSpec, shards: list[int], devices: list[str], bar, threads: int | None = None) -> None:
-    """Render ``shards`` with one worker process per element of ``devices`` (at most one per shard),
-    in this process when there is one; each worker runs ``choose(workers, threads)`` CPU threads."""
-    if len(devices) == 1 or len(shards) <= 1:  # (none left: a resumed dataset that was complete)
-        for s in shards:
-            write_shard(on_device(spec, devices[0]), s, progress=bar.update)
-        return
-    import multiprocessing as mp
-    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-
-    ctx = mp.get_context("spawn")
-    progress, handout = ctx.Queue(), ctx.Queue()
-    devices = devices[:len(shards)]
-    threads = choose(len(devices), threads)
-    for device in devices:
-        handout.put(device)
-    with ProcessPoolExecutor(max_workers=len(devices), mp_context=ctx,
-                             initializer=_init_worker, initargs=(threads, progress, handout)) as pool:
-        pending = {pool.submit(_pool_task, spec, s) for s in shards}
-        while pending:
-            done, pending = wait(pending, timeout=0.2, return_when=FIRST_COMPLETED)
-            _drain(progress, bar)
-            for fut in done:
-                fut.result()  # re-raise a worker's error here
-        _drain(progress, bar)
-
-
-def _drain(queue, bar) -> None:
-    import queue as queue_mod
-
-    while True:
-        try:
-            bar.update(queue.get_nowait())
-        except queue_mod.Empty:
-            return
-
-
-def ray_task_options(nodes: list[dict], threads: int, gpus: float | None) -> dict:
-    """What one shard task asks Ray for: ``threads`` CPUs and, when it renders on CUDA, ``gpus`` of
-    one GPU (None: a CPU task). ``nodes`` is ``ray.nodes()``: the CPUs are capped at the largest
-    alive node that could run the task, since a task asking for more than any node has would wait
-    forever; for the same reason a GPU task on a cluster without GPUs is refused."""
-    alive = [n.get("Resources", {}) for n in nodes if n.get("Alive")]
-    if gpus:
-        alive = [r for r in alive if r.get("GPU", 0) > 0]
-        if not alive:
-            raise SettingError("the Ray cluster has no GPU; render on the CPU with {device} cpu")
-    biggest = max((r.get("CPU", 0) for r in alive), default=0)
-    options = {"num_cpus": max(1, min(threads, int(biggest) or threads))}
-    if gpus:
-        options["num_gpus"] = gpus
-    return options
-
-
-def _ray_task(spec: JobSpec, shard: int, threads: int, cuda: bool) -> dict:
-    # Ray workers are reused across tasks and jobs: set the threads for every task. A GPU task runs
-    # in a fresh worker (Ray's default for tasks that ask for GPUs) that sees the GPU it was given.
-    # A CPU task stays on the CPU even on a node with GPUs.
-    device = "cpu"
-    if cuda:
-        import ray
-
-        device = ray_task_device(ray.get_gpu_ids(), os.environ.get("CUDA_VISIBLE_DEVICES"))
-    _enter_worker(threads, device)
-    return write_shard(on_device(spec, device), shard)
-
-
-def _run_ray(spec: JobSpec, shards: list[int], address: str | None, threads: int, gpus: float | None,
-             bar) -> None:
-    """Run the shard tasks on Ray: the cluster this process is already connected to, else the one
-    at ``address`` / RAY_ADDRESS, else a private local instance. Only a connection or instance made
-    here is closed here. ``gpus``: each task's share of a GPU when rendering on CUDA, else None."""
-    with ray_connection(address) as ray:
-        _run_ray_tasks(ray, spec, shards, threads, gpus, bar)
-
-
-def _run_ray_tasks(ray, spec: JobSpec, shards: list[int], threads: int, gpus: float | None, bar) -> None:
-    """Submit one task per shard and wait for them; after an error or an interrupt the rest are
-    cancelled (each removes its partial shard)."""
-    options = ray_task_options(ray.nodes(), threads, gpus)
-    task = ray.remote(**options)(_ray_task)
-    pending = {task.remote(spec, s, options["num_cpus"], bool(gpus)): s for s in shards}
-    with closing(ray_results(ray, pending, "shard {}")) as finished:
-        for _, sidecar in finished:
-            bar.update(len(sidecar["subjects"]) * spec.views)
+def render_shards(spec: JobSpec, shards: list[int], placement: Placement, bar) -> None:
+    """Render ``shards`` where ``placement`` says (:func:`datagen.runner.run_tasks`)."""
+    units = [len(spec.shard_subjects(s)) * spec.views for s in shards]
+    for _ in run_tasks(_shard_task, spec, shards, units, placement, bar, "shard {}"):
+        pass
 
 
 def prepare_output(spec: JobSpec, index: dict) -> None:
@@ -327,12 +226,11 @@ def run_sample(spec: JobSpec, *, workers: int | str = 1, backend: str = "local",
     spec.check()
     if workers != "auto" and not (isinstance(workers, int) and workers >= 1):
         raise SettingError("{workers} must be auto or at least 1")
-    if backend not in ("local", "ray"):
-        raise SettingError(f"{{backend}} {backend!r}: choose local or ray")
     mine = job_shards(spec.num_shard_files, shard_index, num_shards)
     requested = requested_device(spec)
     devices = worker_devices(requested, workers, max(1, min(usable_cpus(), len(mine))))
-    gpus = _ray_gpus(backend, requested, devices[0], gpus_per_task)
+    placement = Placement(tuple(devices), threads, backend, ray_address,
+                          _ray_gpus(backend, requested, devices[0], gpus_per_task))
     generator = make_generator(spec.gan, spec.checkpoint, spec.generator_options)
     index = make_index(spec, generator.describe())
     prepare_output(spec, index)
@@ -348,10 +246,7 @@ def run_sample(spec: JobSpec, *, workers: int | str = 1, backend: str = "local",
     bar = progress_bar(images, "img", "rendering", progress)
     start = time.perf_counter()
     try:
-        if backend == "ray":
-            _run_ray(spec, todo, ray_address, threads or max(1, usable_cpus() // len(devices)), gpus, bar)
-        else:
-            _run_local(spec, todo, devices, bar, threads)
+        render_shards(spec, todo, placement, bar)
     except OSError as e:
         if e.errno == errno.ENOSPC:
             raise SettingError(f"disk full while writing {e.filename or spec.out}; "

@@ -8,7 +8,8 @@ from PIL import Image, ImageDraw, ImageFont
 
 from .errors import SettingError, UserError
 from .files import atomic_write
-from .shards import is_complete, read_index, read_subject, subject_id
+from .dataset import Dataset
+from .dataset.shards import subject_id
 
 MIN_CELL = 160
 LABEL_HEIGHT = 30
@@ -34,9 +35,10 @@ def _depth_image(depth: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     return out
 
 
-def contact_sheet(root, subject: str, columns: int = 8, with_mask_depth: bool = False) -> Image.Image:
-    """All views of one subject in a grid, each labelled with its camera."""
-    sample = read_subject(root, subject)
+def contact_sheet(dataset, subject: str, columns: int = 8, with_mask_depth: bool = False) -> Image.Image:
+    """All views of one subject of ``dataset`` (a Dataset or its folder) in a grid, each labelled with its camera."""
+    dataset = Dataset.of(dataset)
+    sample = dataset.read_subject(subject)
     meta = sample.metadata
     res = meta["resolution"]
     scale = max(1, -(-MIN_CELL // res))
@@ -48,7 +50,7 @@ def contact_sheet(root, subject: str, columns: int = 8, with_mask_depth: bool = 
     cell_w, cell_h = tile * parts, tile + LABEL_HEIGHT
     sheet = Image.new("RGB", (columns * cell_w, TITLE_HEIGHT + rows * cell_h), (30, 30, 30))
     draw = ImageDraw.Draw(sheet)
-    title = (f"{Path(root).name}  {sample.key}  generator={meta['generator']['name']}  protocol={meta['protocol']}"
+    title = (f"{dataset.root.name}  {sample.key}  generator={meta['generator']['name']}  protocol={meta['protocol']}"
              f"  {res}x{res}  {n} views")
     draw.text((6, 5), title, fill=(235, 235, 235), font=font(14))
     small = font(11)
@@ -89,11 +91,10 @@ def write_contact_sheet(root, subject: str, out, columns: int = 8, with_mask_dep
     return out
 
 
-def dataset_info(root) -> dict:
-    root = Path(root)
-    index = read_index(root)
-    shards = index["shards"]
-    complete = [s for s in shards if is_complete(root, int(s["name"].split("-")[1]))]
+def dataset_info(dataset) -> dict:
+    dataset = Dataset.of(dataset)
+    root, index, shards = dataset.root, dataset.index, dataset.shards
+    complete = set(dataset.complete_shards())
     size = sum(p.stat().st_size for p in root.glob("shard-*.tar"))
     s = index["settings"]
     return {
@@ -103,7 +104,7 @@ def dataset_info(root) -> dict:
         "resolution": s["resolution"],
         "views_per_subject": index["views_per_subject"],
         "subjects": index["num_subjects"],
-        "subjects_complete": sum(len(x["subjects"]) for x in complete),
+        "subjects_complete": sum(len(x["subjects"]) for n, x in zip(dataset.shard_numbers, shards) if n in complete),
         "shards": len(shards),
         "shards_complete": len(complete),
         "seed": s["seed"],

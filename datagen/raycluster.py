@@ -5,7 +5,7 @@ import logging
 import os
 import socket
 from contextlib import contextmanager
-from typing import Iterator
+from typing import Callable, Iterator
 
 from .errors import UserError, optional_import
 
@@ -50,10 +50,10 @@ def ray_connection(address: str | None):
             ray_logger.setLevel(level)
 
 
-def ray_results(ray, pending: dict, what: str) -> Iterator[tuple]:
+def ray_results(ray, pending: dict, describe: Callable[[object], str]) -> Iterator[tuple]:
     """(name, result) of each Ray task in ``pending`` ({object ref: name}) as it finishes. A task's own
     error is raised as the task raised it (chained to Ray's, which carries the remote traceback); any
-    other Ray error is a RuntimeError naming ``what.format(name)``. After an error, an interrupt or
+    other Ray error is a RuntimeError naming ``describe(name)``. After an error, an interrupt or
     the caller's early exit (close the iterator), the tasks still pending are cancelled."""
     pending = dict(pending)
     try:
@@ -66,9 +66,9 @@ def ray_results(ray, pending: dict, what: str) -> Iterator[tuple]:
                 cause = getattr(e, "cause", None)
                 if isinstance(cause, Exception):
                     raise cause from e
-                raise RuntimeError(f"{what.format(name)} failed on Ray: {e}") from e
+                raise RuntimeError(f"{describe(name)} failed on Ray: {e}") from e
             except ray.exceptions.RayError as e:
-                raise RuntimeError(f"{what.format(name)} failed on Ray ({type(e).__name__}): {e}") from e
+                raise RuntimeError(f"{describe(name)} failed on Ray ({type(e).__name__}): {e}") from e
             yield name, result
     finally:
         for ref in pending:

@@ -34,8 +34,8 @@ import numpy as np
 
 from .errors import DatasetError, SettingError, UserError
 from .files import atomic_write
-from .shards import (SHAPE_FIELD, find_shard, is_complete, read_index, read_range, read_sidecar, shard_index,
-                     subject_id, tar_path, to_uint8)
+from .dataset import Dataset
+from .dataset.shards import SHAPE_FIELD, read_range, read_sidecar, subject_id, tar_path, to_uint8
 
 FORMATS = ("ply", "obj", "glb")
 DEFAULT_RESOLUTION = 256  # datagen shape, for a dataset that stores no shape
@@ -256,10 +256,11 @@ def check_mesh(data: bytes, record: dict, where: str) -> list[str]:
     return checked_mesh(data, record, where)[1]
 
 
-def stored_shape(root, key: str):
-    """(PLY bytes, record) of the shape stored with subject ``key``, or None when its shard is not
-    complete or holds none."""
-    shard = find_shard(root, key)
+def stored_shape(dataset, key: str):
+    """(PLY bytes, record) of the shape stored with subject ``key`` of ``dataset`` (a Dataset or its folder),
+    or None when its shard is not complete or holds none."""
+    dataset = Dataset.of(dataset)
+    root, shard = dataset.root, dataset.shard(key)
     side = read_sidecar(root, shard)
     if side is None or key not in side["offsets"]:
         return None
@@ -271,20 +272,20 @@ def stored_shape(root, key: str):
     return fields[SHAPE_FIELD], record
 
 
-def shapes_summary(root) -> dict | str:
+def shapes_summary(dataset: Dataset) -> dict | str:
     """What ``datagen info`` says of a dataset's shapes: 'none', or the grid resolution, level and
     how many subjects of complete shards hold one."""
-    index = read_index(root)
-    settings = index["settings"]
+    settings = dataset.index["settings"]
     if not settings.get("save_shape"):
         return "none"
-    done = sum(len(s["subjects"]) for s in index["shards"] if is_complete(root, shard_index(s["name"])))
+    complete = set(dataset.complete_shards())
+    done = sum(len(s["subjects"]) for n, s in zip(dataset.shard_numbers, dataset.shards) if n in complete)
     level = settings.get("shape_level")
     return {"resolution": settings["save_shape"], "level": default_level(settings["gan"]) if level is None else level,
             "subjects": done, "stored": f"{SHAPE_FIELD} in each subject's record"}
 
 
-def subject_shape(root, key: str, resolution: int | None = None, level: float | None = None,
+def subject_shape(dataset: Dataset, key: str, resolution: int | None = None, level: float | None = None,
                   checkpoint: str | None = None, device: str | None = None, budget_mb: float | None = None):
     """Subject ``key``'s shape: (PLY bytes, record, how) where how is 'stored' or 'extracted'.
 
@@ -294,10 +295,10 @@ def subject_shape(root, key: str, resolution: int | None = None, level: float | 
     sha256; ``device`` and ``budget_mb`` as ``datagen sample``'s) and its surface extracted."""
     from .generators import make_generator
 
-    index = read_index(root)
-    find_shard(root, key)
+    index = dataset.index
+    dataset.shard(key)
     settings = index["settings"]
-    stored = stored_shape(root, key) if settings.get("save_shape") else None
+    stored = stored_shape(dataset, key) if settings.get("save_shape") else None
     if stored is not None and resolution in (None, stored[1]["resolution"]) and level in (None, stored[1]["level"]):
         return stored[0], stored[1], "stored"
     gan = settings["gan"]
@@ -309,23 +310,24 @@ def subject_shape(root, key: str, resolution: int | None = None, level: float | 
     generator = make_generator(gan, checkpoint or settings.get("checkpoint"), options)
     recorded = index["generator"].get("checkpoint_sha256")
     if generator.describe()["checkpoint_sha256"] != recorded:
-        raise UserError(f"the checkpoint {checkpoint or settings.get('checkpoint')} is not the one {root} was made "
+        raise UserError(f"the checkpoint {checkpoint or settings.get('checkpoint')} is not the one {dataset.root} was made "
                         f"with (sha256 {str(recorded)[:12]}...)")
     subject = generator.sample_subject(settings["seed"], int(key[4:]))
     mesh = extract_shape(generator, subject, resolution or DEFAULT_RESOLUTION, level)
     return encode_mesh(mesh), mesh.record, "extracted"
 
 
-def write_shape(root, key: str, out, **options) -> dict:
-    """Write subject ``key``'s shape to ``out`` (.ply, .obj or .glb, by its suffix) atomically;
+def write_shape(dataset, key: str, out, **options) -> dict:
+    """Write subject ``key``'s shape of ``dataset`` (a Dataset or its folder) to ``out`` (.ply, .obj or .glb, by its suffix) atomically;
     ``options`` as :func:`subject_shape`. Returns the record, with how it was made and the seconds."""
     out = Path(out)
     fmt = out.suffix.lower().lstrip(".")
     if fmt not in FORMATS:
         raise UserError(f"{out}: the file name must end in .ply, .obj or .glb")
     start = time.perf_counter()
-    data, record, how = subject_shape(root, key, **options)
-    mesh, problems = checked_mesh(data, record, f"{root}: {key}")
+    dataset = Dataset.of(dataset)
+    data, record, how = subject_shape(dataset, key, **options)
+    mesh, problems = checked_mesh(data, record, f"{dataset.root}: {key}")
     if problems:
         raise DatasetError("; ".join(problems))
     if fmt != "ply":  # the PLY is copied as it is, once it has passed the same check

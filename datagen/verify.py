@@ -2,15 +2,17 @@
 from __future__ import annotations
 
 import hashlib
-from pathlib import Path
+from dataclasses import dataclass
 
 import numpy as np
 
-from .command_line import progress_bar
+from .command_line import at_least, progress_bar, setting
 from .errors import DatasetError
 from .files import sha256_file
+from .runner import Placement, RunOptions, run_tasks
 from .shapes import check_mesh
-from .shards import (SHAPE_FIELD, TRUTH_DIR, decode_sample, iter_tar_samples, read_index, read_range,
+from .dataset import Dataset
+from .dataset.shards import (SHAPE_FIELD, TRUTH_DIR, decode_sample, iter_tar_samples, read_range,
                      read_sidecar, shard_index, sidecar_path, tar_path, truth_path)
 
 SUBJECT_KEYS = ("format", "subject_id", "subject_index", "dataset_seed", "generator", "latent", "protocol",
@@ -140,22 +142,39 @@ def check_byte_ranges(root, i: int, side: dict, digests: dict) -> list[str]:
     return problems
 
 
-def verify_dataset(root, progress: bool = False) -> dict:
-    """Verify a whole dataset; returns {'shards', 'complete', 'subjects', 'problems', 'stray'}."""
-    root = Path(root)
-    index = read_index(root)
-    views, resolution = index["views_per_subject"], index["settings"]["resolution"]
-    shape = index["settings"].get("save_shape", 0)
-    problems, complete, subjects = [], 0, 0
-    shards = index["shards"]
-    bar = progress_bar(len(shards), "shard", "verifying", progress)
-    for shard in shards:
-        p = verify_shard(root, shard, views, resolution, shape)
-        problems += p
-        if not p:
-            complete += 1
-            subjects += len(shard["subjects"])
-        bar.update(1)
-    bar.close()
+@dataclass(frozen=True)
+class VerifyOptions(RunOptions):
+    """The options of ``datagen verify``."""
+
+    shard_index: int = setting(0, "array jobs: verify only the shards s with s %% N == K", parse=at_least(0),
+                               metavar="K")
+    num_shards: int = setting(1, "array jobs: how many parts (with --shard-index)", parse=at_least(1), metavar="N")
+    quiet: bool = setting(False, "no progress bar")
+
+
+def _verify_task(job: tuple, shard: dict, device: str, report) -> list[str]:
+    """The runner's task (:mod:`datagen.runner`): the problems of one shard of the index."""
+    root, views, resolution, shape = job
+    return verify_shard(root, shard, views, resolution, shape)
+
+
+def verify_dataset(dataset, progress: bool = False, placement: Placement = Placement(), shards=None) -> dict:
+    """Verify the shards numbered ``shards`` (default all) of ``dataset`` (a Dataset or its folder) where
+    ``placement`` says; returns {'shards', 'complete', 'subjects', 'problems', 'stray'}."""
+    dataset = Dataset.of(dataset)
+    root, index = dataset.root, dataset.index
+    job = (root, index["views_per_subject"], index["settings"]["resolution"], index["settings"].get("save_shape", 0))
+    listed = [sh for n, sh in zip(dataset.shard_numbers, dataset.shards) if shards is None or n in shards]
+    found = [None] * len(listed)
+    bar = progress_bar(len(listed), "shard", "verifying", progress)
+    try:
+        for i, problems in run_tasks(_verify_task, job, listed, [1] * len(listed), placement, bar,
+                                     lambda shard: f"verifying {shard['name']}"):
+            found[i] = problems
+    finally:
+        bar.close()
+    problems = [p for found_here in found for p in found_here]
+    valid = [sh for sh, p in zip(listed, found) if not p]
     stray = sorted(str(p) for p in list(root.glob(".*tmp-*")) + list((root / TRUTH_DIR).glob(".*tmp-*")))
-    return {"shards": len(shards), "complete": complete, "subjects": subjects, "problems": problems, "stray": stray}
+    return {"shards": len(listed), "complete": len(valid), "subjects": sum(len(sh["subjects"]) for sh in valid),
+            "problems": problems, "stray": stray}

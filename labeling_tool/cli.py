@@ -10,7 +10,8 @@ from pathlib import Path
 from datagen.command_line import OneLineParser, add_options, at_least, given, run_command, setting, unit_interval
 from datagen.errors import SettingError, UserError, optional_import
 from datagen.threads import add_option as add_threads_option
-from datagen.shards import read_index
+from datagen.dataset import Dataset
+from datagen.runner import RunOptions
 
 from .compiler import UNREVIEWED
 
@@ -27,10 +28,9 @@ def window_size(text: str) -> tuple[int, int]:
 
 
 @dataclass(frozen=True)
-class AutoOptions:
+class AutoOptions(RunOptions):
     """The options of ``label-tool auto``; which go together is checked by :meth:`check`."""
 
-    workers: int = setting(1, "processes that read and measure subjects", parse=at_least(1))
     learn: str | None = setting(None, "re-rank the unreviewed subjects with a classifier fitted on the verdicts in "
                                       "this folder of event logs (after about 20 or more verdicts with both good and "
                                       "bad ones)", metavar="LABELS")
@@ -49,10 +49,6 @@ class AutoOptions:
                                      metavar="N")
     merge: bool = setting(False, "score the whole dataset from the slice files of --shard-index/--num-shards jobs")
     out: str | None = setting(None, "folder of the slice files (default: DATASET/preflags-slices)", metavar="DIR")
-    backend: str = setting("local", "local processes (--workers), or one task per shard on a Ray cluster (this "
-                                    "process scores)", choices=("local", "ray"))
-    ray_address: str | None = setting(None, "Ray cluster to use (default: RAY_ADDRESS, else a local Ray instance)",
-                                      metavar="ADDR")
 
     @property
     def sliced(self) -> bool:
@@ -72,8 +68,7 @@ class AutoOptions:
                                    "{shard_index} measures one slice; {merge} goes with the run after every slice")
         if self.out is not None and not (self.sliced or self.merge):
             raise SettingError("{out} is the folder of slice files: only with {shard_index} or {merge}")
-        if self.ray_address is not None and self.backend != "ray":
-            raise SettingError("{ray_address}: only with {backend} ray")
+        self.placement()  # backend and address
 
 
 def build_parser() -> OneLineParser:
@@ -130,12 +125,11 @@ def build_queue(target: str, queue: str):
     shard_only = None
     if path.suffix == ".tar":
         shard_only, path = path.stem, path.parent
-    index = read_index(path)
-    items = [QueueItem(s, sh["name"]) for sh in index["shards"] for s in sh["subjects"]
+    items = [QueueItem(s, sh["name"]) for sh in Dataset(path).shards for s in sh["subjects"]
              if shard_only is None or sh["name"] == shard_only]
     if shard_only is not None and not items:
         raise UserError(f"{target}: not a shard of the dataset in {path}")
-    from datagen.preflags import read_review_queue
+    from datagen.dataset.preflags import read_review_queue
 
     rows = read_review_queue(path)
     if rows is None:
@@ -155,7 +149,7 @@ def build_queue(target: str, queue: str):
 
 
 def _auto(args) -> int:
-    from datagen.preflags import write_preflags
+    from datagen.dataset.preflags import write_preflags
 
     optional_import("cv2", "faces")
     from .preflags import FALSE_ALARM_RATE, FLAG_AT, score_dataset
@@ -166,11 +160,12 @@ def _auto(args) -> int:
     if not opts.merge:
         from datagen.faces import check_dlib
         check_dlib()
+    placement = opts.placement(args.threads)
     if opts.sliced:
         from .preflags.slices import measure_slice
 
-        path, extracted = measure_slice(args.dataset, opts.shard_index, opts.num_shards, opts.out, opts.workers,
-                                        not opts.quiet, skip_incomplete=opts.skip_incomplete, threads=args.threads)
+        path, extracted = measure_slice(args.dataset, opts.shard_index, opts.num_shards, opts.out, placement,
+                                        not opts.quiet, skip_incomplete=opts.skip_incomplete)
         skipped = extracted["skipped_shards"]
         print(f"measured {len(extracted['records'])} subjects of slice {opts.shard_index} of {opts.num_shards} -> "
               f"{path}" + (f"; SKIPPED {len(skipped)} incomplete shard(s): {', '.join(skipped[:5])}"
@@ -182,15 +177,9 @@ def _auto(args) -> int:
         from .preflags.slices import merge_slices
 
         report = merge_slices(args.dataset, opts.out, labels=opts.learn, false_alarm_rate=rate)
-    elif opts.backend == "ray":
-        from .preflags.cluster import score_on_ray
-
-        report = score_on_ray(args.dataset, opts.ray_address, progress=not opts.quiet,
-                              skip_incomplete=opts.skip_incomplete, labels=opts.learn, false_alarm_rate=rate)
     else:
-        report = score_dataset(args.dataset, progress=not opts.quiet, workers=opts.workers,
-                               skip_incomplete=opts.skip_incomplete, labels=opts.learn, false_alarm_rate=rate,
-                               threads=args.threads)
+        report = score_dataset(args.dataset, progress=not opts.quiet, placement=placement,
+                               skip_incomplete=opts.skip_incomplete, labels=opts.learn, false_alarm_rate=rate)
     path = write_preflags(args.dataset, report)
     flagged = [r for r in report["subjects"] if r["flags"]]
     skipped = report["summary"]["skipped_shards"]

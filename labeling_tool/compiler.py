@@ -1,6 +1,6 @@
 """Compiling curated manifests: all reviewers' verdicts merged under a stated policy, written once.
 
-The manifest format itself (fields, splits, versions) is described in ``datagen.manifests``.
+The manifest format itself (fields, splits, versions) is described in ``datagen.dataset.manifests``.
 """
 from __future__ import annotations
 
@@ -11,11 +11,12 @@ from pathlib import Path
 
 from datagen.errors import SettingError, UserError
 from datagen.files import atomic_write
-from datagen.manifests import FORMAT, read_manifest
-from datagen.preflags import is_stale, read_preflags
-from datagen.shards import check_shards, dumps, index_sha256, read_index, shard_index
+from datagen.dataset.manifests import FORMAT, read_manifest
+from datagen.dataset.preflags import is_stale, read_preflags
+from datagen.dataset import Dataset
+from datagen.dataset.shards import dumps
 
-from datagen.events import is_decision, read_logs, verdicts
+from datagen.dataset.events import is_decision, read_logs, verdicts
 
 POLICIES = ("any-bad", "majority")
 UNREVIEWED = ("accept", "reject", "reject-flagged")
@@ -44,9 +45,9 @@ def merge(votes: dict[str, tuple[str, tuple]], policy: str, unreviewed: str, fla
 
 def compile_manifest(dataset, labels_dir, policy: str = "any-bad", unreviewed: str = "accept",
                      test_count: int | None = None, parent=None, skip_unverified: bool = False) -> dict:
-    """Build the manifest dict (not written); see the module docstring.
+    """Build the manifest dict (not written) of ``dataset`` (a Dataset or its folder); see the module docstring.
 
-    Every shard of the index is checked first (:func:`datagen.shards.check_shards`: sidecar, size,
+    Every shard of the index is checked first (:func:`datagen.dataset.shards.check_shards`: sidecar, size,
     sha256, subjects and byte ranges; cached): one it cannot vouch for is a UserError naming it, or
     with ``skip_unverified`` its subjects are rejected with the reason ``unverified_shard``.
     """
@@ -56,9 +57,9 @@ def compile_manifest(dataset, labels_dir, policy: str = "any-bad", unreviewed: s
         raise SettingError(f"{{policy}} {policy!r}: choose one of: {', '.join(POLICIES)}")
     if unreviewed not in UNREVIEWED:
         raise SettingError(f"{{unreviewed}} must be one of: {', '.join(UNREVIEWED)}")
-    index = read_index(dataset)
-    index_sha = index_sha256(dataset)
-    unverified = shard_problems(dataset, index)
+    dataset = Dataset.of(dataset)
+    index = dataset.index
+    unverified = shard_problems(dataset)
     if unverified and not skip_unverified:
         first = next(iter(unverified.values()))
         raise UserError(f"{first}" + (f" (and {len(unverified) - 1} more shard(s))" if len(unverified) > 1 else "")
@@ -120,33 +121,32 @@ def compile_manifest(dataset, labels_dir, policy: str = "any-bad", unreviewed: s
         "counts": counts,
         "conflicts": conflicts,
         "reviewers": sorted(logs),
-        "dataset": str(Path(dataset).resolve().name),
-        "dataset_index_sha256": index_sha,
+        "dataset": str(dataset.root.resolve().name),
+        "dataset_index_sha256": dataset.index_sha256,
         "log_problems": problems,
     }
     return {"header": header, "subjects": rows}
 
 
-def shard_problems(dataset, index: dict) -> dict[str, str]:
-    """{shard name: its first problem} for the index's shards that fail :func:`datagen.shards.check_shards`."""
-    problems = check_shards(dataset, [shard_index(sh["name"]) for sh in index["shards"]], index)
-    return {sh["name"]: problems[shard_index(sh["name"])] for sh in index["shards"]
-            if shard_index(sh["name"]) in problems}
+def shard_problems(dataset: Dataset) -> dict[str, str]:
+    """{shard name: its first problem} for the index's shards that fail :func:`datagen.dataset.shards.check_shards`."""
+    problems = dataset.check_shards()
+    return {sh["name"]: problems[n] for n, sh in zip(dataset.shard_numbers, dataset.shards) if n in problems}
 
 
-def flagged_subjects(dataset, required: bool) -> set[str] | None:
+def flagged_subjects(dataset: Dataset, required: bool) -> set[str] | None:
     """Subjects the dataset's pre-flags (``label-tool auto``) flag; None when there are none or they are
     stale (made for another index.json), or a UserError when ``required``."""
     try:
-        report = read_preflags(dataset)
+        report = read_preflags(dataset.root)
     except UserError as e:
         if required:
             raise SettingError(f"{{unreviewed}} reject-flagged needs pre-flags: {e}") from None
         return None
     if is_stale(dataset, report):
         if required:
-            raise SettingError(f"{{unreviewed}} reject-flagged: the pre-flags of {dataset} were made for another "
-                            f"index.json; run 'label-tool auto {dataset}' again")
+            raise SettingError(f"{{unreviewed}} reject-flagged: the pre-flags of {dataset.root} were made for another "
+                               f"index.json; run 'label-tool auto {dataset.root}' again")
         return None
     return {r["subject"] for r in report["subjects"] if r["flags"]}
 
@@ -183,7 +183,7 @@ def next_version_path(manifests_dir, dataset) -> Path:
 
 def review_stats(dataset, labels_dir) -> dict:
     """Counts per reason and per reviewer, and agreement between each pair of reviewers."""
-    read_index(dataset)
+    Dataset.of(dataset)  # a dataset folder, or a DatasetError naming what is wrong
     logs, problems = read_logs(labels_dir)
     per = {r: {s: e for s, e in verdicts(ev).items() if is_decision(e)} for r, ev in logs.items()}
     reasons: dict[str, int] = {}

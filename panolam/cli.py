@@ -191,7 +191,7 @@ def cmd_infer(args) -> int:
 
 # -- eval -------------------------------------------------------------------------------------------------------
 def cmd_eval(args) -> int:
-    from datagen.manifests import read_manifest
+    from datagen.dataset.manifests import read_manifest
     from .checkpoints import model_from_checkpoint, read_checkpoint
     from .data import accepted_subjects
     from .evaluate import GALLERY_SUBJECTS, baselines, evaluate, write_gallery, write_report

@@ -25,21 +25,22 @@ import torch.nn.functional as F
 
 from datagen.cameras import FRONTAL_YAW_DEG, angle_between
 from datagen.errors import DatasetError, UserError
-from datagen.manifests import check_dataset, read_manifest
-from datagen.shards import check_shards, decode_sample, read_fields, shard_index, tar_path
+from datagen.dataset.manifests import check_dataset, read_manifest
+from datagen.dataset import Dataset
+from datagen.dataset.shards import decode_sample, read_fields, shard_index, tar_path
 
 BACKGROUND = (1.0, 1.0, 1.0)
 SPHEREHEAD_PLANES_NDIM = 5  # (2, D, C, R, R); EG3D's and PanoHead's are (3, C, R, R)
 SPLITS = ("train", "test")
 
 
-def accepted_subjects(manifest: dict, split: str, root=None) -> list[tuple[str, int]]:
+def accepted_subjects(manifest: dict, split: str, dataset=None) -> list[tuple[str, int]]:
     """(subject id, shard) of the accepted subjects of ``split``, in manifest order.
 
-    With ``root``, the manifest must have been compiled for that dataset folder (UserError otherwise).
+    With ``dataset`` (a Dataset or its folder), the manifest must have been compiled for it (UserError otherwise).
     """
-    if root is not None:
-        check_dataset(manifest, root)
+    if dataset is not None:
+        check_dataset(manifest, dataset)
     if split not in SPLITS:
         raise UserError(f"unknown split {split!r}; choose train or test")
     out = [(s["subject"], shard_index(s["shard"])) for s in manifest["subjects"]
@@ -49,11 +50,12 @@ def accepted_subjects(manifest: dict, split: str, root=None) -> list[tuple[str, 
     return out
 
 
-def check_subject_shards(root, subjects: list[tuple[str, int]]) -> None:
-    """DatasetError naming the first shard holding one of ``subjects`` that fails the fast integrity
-    check (:func:`datagen.shards.check_shards`: sidecar, size, sha256, subjects and byte ranges; cached,
+def check_subject_shards(dataset, subjects: list[tuple[str, int]]) -> None:
+    """DatasetError naming the first shard holding one of ``subjects`` of ``dataset`` (a Dataset or its
+    folder) that fails the fast integrity
+    check (:func:`datagen.dataset.shards.check_shards`: sidecar, size, sha256, subjects and byte ranges; cached,
     so cheap the second time)."""
-    problems = list(check_shards(root, {shard for _, shard in subjects}).values())
+    problems = list(Dataset.of(dataset).check_shards({shard for _, shard in subjects}).values())
     if problems:
         more = f" (and {len(problems) - 1} more problems: run datagen verify)" if len(problems) > 1 else ""
         raise DatasetError(problems[0] + more)
@@ -109,7 +111,7 @@ def load_views(root, key: str, shard: int, views=None, resolution: int | None = 
 
 def decode_views(key: str, fields: dict, views=None, resolution: int | None = None,
                  input_resolution: int | None = None, where: str = "") -> Views:
-    """:func:`load_views` on a subject's raw fields (:func:`datagen.shards.read_fields`); ``where``
+    """:func:`load_views` on a subject's raw fields (:func:`datagen.dataset.shards.read_fields`); ``where``
     (the shard file) starts a decoding error's message, which names the subject."""
     if views is None:
         views = range(len(json.loads(fields["json"])["views"]))
@@ -147,8 +149,9 @@ class TrainingSamples(torch.utils.data.Dataset):
     def __init__(self, root, manifest_path, split: str, views_per_sample: int, resolution: int, seed: int,
                  input_resolution: int | None = None, input_views: str = "any"):
         self.root, self.seed, self.input_views = root, seed, input_views
-        self.subjects = accepted_subjects(read_manifest(manifest_path), split, root)
-        check_subject_shards(root, self.subjects)
+        dataset = Dataset(root)
+        self.subjects = accepted_subjects(read_manifest(manifest_path), split, dataset)
+        check_subject_shards(dataset, self.subjects)
         self.views_per_sample, self.resolution, self.input_resolution = views_per_sample, resolution, input_resolution
         key, shard = self.subjects[0]
         n = len(view_yaws(read_fields(root, shard, key)))

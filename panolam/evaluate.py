@@ -38,7 +38,8 @@ from datagen.cameras import angle_between
 from datagen.device import constant
 from datagen.files import atomic_write
 from datagen.preview import font
-from datagen.shards import read_fields, tar_path, to_uint8
+from datagen.dataset import Dataset
+from datagen.dataset.shards import read_fields, tar_path, to_uint8
 from datagen.text import plural
 
 from .data import BACKGROUND, accepted_subjects, check_subject_shards, decode_views, load_views, view_yaws
@@ -88,8 +89,9 @@ def evaluate(model: PanoLAM, data, manifest: dict, split: str = "test", resoluti
     ``gallery``: a list that receives, for the first ``gallery_subjects`` subjects, (subject, input,
     renders, targets) as uint8 HxWx3 images (renders and targets in ``EVAL_VIEWS`` order)."""
     device = next(model.parameters()).device
-    subjects = accepted_subjects(manifest, split, data)[:limit]
-    check_subject_shards(data, subjects)
+    dataset = Dataset.of(data)
+    subjects = accepted_subjects(manifest, split, dataset)[:limit]
+    check_subject_shards(dataset, subjects)
     rows, skipped, rec_times, render_times, front_targets = [], [], [], [], []
     for key, shard in subjects:
         fields = read_fields(data, shard, key)

@@ -24,7 +24,7 @@ from datagen.cameras import FOV_MEAN, HEAD360_PIVOT, RADIUS_MEAN, ViewSet, named
 from datagen.device import constant
 from datagen.errors import SettingError, UserError, optional_import
 from datagen.files import atomic_write
-from datagen.shards import to_uint8
+from datagen.dataset.shards import to_uint8
 
 from .data import BACKGROUND
 from .gaussians import Gaussians, ply_bytes

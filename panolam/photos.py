@@ -15,7 +15,7 @@ from PIL import Image, ImageOps, UnidentifiedImageError
 
 from datagen.errors import optional_import
 from datagen.faces import FaceError, detect_faces, head_quad, landmarks, to_float_rgb, warp_quad
-from datagen.shards import to_uint8
+from datagen.dataset.shards import to_uint8
 
 MAX_PHOTO_PIXELS = 100_000_000  # photos above this are refused before they are decoded
 WORK_MAX_SIDE = 4096  # px; larger photos are downscaled to this long side as they are decoded

@@ -18,7 +18,8 @@ import torch
 from datagen.cameras import camera_directions
 from datagen.errors import UserError
 from datagen.files import atomic_write
-from datagen.shards import (INDEX_NAME, ShardWriter, dumps, encode_subject, read_fields, read_index, shard_index,
+from datagen.dataset import Dataset
+from datagen.dataset.shards import (INDEX_NAME, ShardWriter, dumps, encode_subject, read_fields, shard_index,
                             tar_path)
 
 from .data import BACKGROUND, decode_views, view_yaws
@@ -44,7 +45,7 @@ def write_reconstructions(model, data, subjects: list[tuple[str, int]], out) -> 
     if (out / INDEX_NAME).exists():
         raise UserError(f"{out} already holds a dataset; choose another folder for the renders")
     device = next(model.parameters()).device
-    index = read_index(data)
+    index = Dataset.of(data).index
     out.mkdir(parents=True, exist_ok=True)
     by_shard: dict[int, list[str]] = {}
     for key, shard in subjects:

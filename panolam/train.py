@@ -40,7 +40,7 @@ from datagen.command_line import progress_bar
 from datagen.device import constant
 from datagen.errors import SettingError, UserError
 from datagen.files import sha256_file
-from datagen.manifests import read_manifest
+from datagen.dataset.manifests import read_manifest
 
 from .checkpoints import CHECKPOINT, read_checkpoint, same_model_config, save_checkpoint
 from .config import ModelConfig, TrainConfig

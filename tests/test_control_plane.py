@@ -10,8 +10,8 @@ import sys
 import pytest
 
 from benchmarks import control_plane
-from datagen.events import is_decision, read_log, verdicts
-from datagen.shards import dumps, iter_tar_samples, read_index, tar_path
+from datagen.dataset.events import is_decision, read_log, verdicts
+from datagen.dataset.shards import dumps, iter_tar_samples, read_index, tar_path
 
 SUBJECTS, SLICES, SHARD_SIZE = 1200, 30, 8
 

@@ -13,7 +13,8 @@ import webdataset as wds
 
 from datagen.errors import UserError
 from datagen.pipeline import run_sample
-from datagen.shards import decode_exr, read_subject, sidecar_path, tar_path
+from datagen.dataset import Dataset
+from datagen.dataset.shards import decode_exr, sidecar_path, tar_path
 from datagen.verify import verify_dataset
 from tests.conftest import all_files, tiny_spec
 
@@ -67,7 +68,7 @@ def test_webdataset_reads_the_shards_unchanged(tiny_dataset):
 
 
 def test_metadata_records_provenance(tiny_dataset):
-    meta = read_subject(tiny_dataset, "subj00000001").metadata
+    meta = Dataset(tiny_dataset).read_subject("subj00000001").metadata
     assert meta["generator"]["name"] == "procedural" and meta["dataset_seed"] == 7
     assert meta["protocol"] == "360" and meta["resolution"] == 32 and meta["pivot"] == [0.0, 0.0, 0.0]
     assert {"version", "git_revision", "torch"} <= set(meta["software"])
@@ -79,7 +80,7 @@ def test_metadata_records_provenance(tiny_dataset):
 
 
 def test_depth_and_mask_agree(tiny_dataset):
-    s = read_subject(tiny_dataset, "subj00000002")
+    s = Dataset(tiny_dataset).read_subject("subj00000002")
     for a, d in zip(s.alpha, s.depth):
         assert (d[a == 0] == 0).all()
         inside = d[a == 255]

@@ -1,6 +1,6 @@
 """The defect taxonomy is the one vocabulary of the generator, the pre-flags and the review window."""
 from datagen.defects import DEFECT_CLASSES, DEFECTS, INJECTED, REASON_LABELS, REVIEW_REASONS
-from datagen.events import REASONS
+from datagen.dataset.events import REASONS
 from datagen.generators.procedural import DEFECT_TYPES
 from datagen.generators.procedural.inject import APPLY, APPLY_ORDER, SAMPLE
 from labeling_tool.preflags.registry import DETECTOR_NAMES

@@ -21,7 +21,7 @@ import torch
 import torch.distributed as dist
 
 from datagen.errors import UserError
-from datagen.manifests import read_manifest
+from datagen.dataset.manifests import read_manifest
 from labeling_tool.compiler import compile_manifest, write_manifest
 from panolam import evaluate as evaluate_module
 from panolam import infer, launch

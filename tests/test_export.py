@@ -25,7 +25,7 @@ from datagen.export import (
     ray_to_z_depth,
 )
 from datagen.pipeline import run_sample
-from datagen.shards import read_subject
+from datagen.dataset import Dataset
 from tests.conftest import tiny_spec
 
 FLIP_YZ = np.diag([1.0, -1.0, -1.0, 1.0])  # OpenGL <-> OpenCV camera axes, written out here on purpose
@@ -130,7 +130,7 @@ def read_colmap(folder, dataset):
     """COLMAP cameras and images; depth from the dataset (COLMAP's sparse text has no depth field)."""
     sparse = folder / "sparse" / "0"
     cams = {int(p[0]): [float(v) for v in p[4:8]] for p in _rows(sparse / "cameras.txt")}
-    sample = read_subject(dataset, SUBJECT)
+    sample = Dataset(dataset).read_subject(SUBJECT)
     views = []
     for head in _rows(sparse / "images.txt")[::2]:
         R, t = _quat_to_matrix([float(v) for v in head[1:5]]), np.array([float(v) for v in head[5:8]])
@@ -321,7 +321,7 @@ def test_a_failed_export_leaves_the_earlier_one(exported, tmp_path, monkeypatch,
 
 def test_every_subject_is_checked_before_anything_is_written(tiny_dataset, tmp_path, capsys):
     """A missing id, or a subject of an incomplete shard, after a good one: nothing is written."""
-    from datagen.shards import sidecar_path
+    from datagen.dataset.shards import sidecar_path
     from tests.test_dataset import copy_dataset
 
     out = tmp_path / "out"

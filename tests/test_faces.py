@@ -13,7 +13,7 @@ from datagen.cameras import (FOV_MEAN, RADIUS_MEAN, camera_position, fov_to_foca
                              pixel_intrinsics)
 from datagen.faces import (CENTRE_BELOW_EYES, CROP_SIDE, EYE_DISTANCE, EYE_TO_MOUTH, GENERIC_FACE, FaceError, apd,
                            crop_head, csim, detect_faces, head_pose, landmarks, pose_from_landmarks)
-from datagen.shards import to_uint8
+from datagen.dataset.shards import to_uint8
 from panolam.photos import load_image, prepare_photo, read_photo
 
 try:

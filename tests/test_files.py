@@ -6,8 +6,8 @@ import pytest
 
 from datagen.errors import DatasetError, UserError
 from datagen.files import atomic_write, read_json, sha256_file
-from datagen.manifests import read_manifest
-from datagen.shards import read_index
+from datagen.dataset.manifests import read_manifest
+from datagen.dataset.shards import read_index
 
 
 def test_atomic_write_replaces_whole_files_and_leaves_no_temporary(tmp_path):

@@ -10,7 +10,7 @@ from datagen.cameras import named_views
 from datagen.gans.checkpoint import CheckpointError, read_checkpoint
 from datagen.generators import make_generator
 from datagen.pipeline import run_sample
-from datagen.shards import read_subject
+from datagen.dataset import Dataset
 from datagen.verify import verify_dataset
 from tests.conftest import all_files, gan_fixture, load_stub, repickle, tiny_spec
 
@@ -84,7 +84,7 @@ def test_gan_dataset_is_valid_and_reproducible(model, protocol, tmp_path):
     run_sample(spec, progress=False)
     report = verify_dataset(spec.out)
     assert report["problems"] == [] and report["subjects"] == 2
-    s = read_subject(spec.out, "subj00000001")
+    s = Dataset(spec.out).read_subject("subj00000001")
     meta = s.metadata
     assert meta["generator"]["name"] == model and len(meta["generator"]["checkpoint_sha256"]) == 64
     assert meta["truncation_psi"] == 0.7 and meta["pivot"] == ([0.0, 0.0, 0.2] if model == "eg3d" else [0.0] * 3)

@@ -8,12 +8,13 @@ from concurrent.futures import Future
 import pytest
 import torch
 
-from datagen import pipeline, threads
+from datagen import pipeline, runner, threads
 from datagen.command_line import SilentBar
 from datagen.cli import main
 from datagen.device import ray_task_device, worker_devices
 from datagen.errors import UserError
-from datagen.pipeline import JobSpec, on_device, ray_task_options, run_sample
+from datagen.pipeline import JobSpec, on_device, run_sample
+from datagen.runner import Placement, ray_task_options
 
 from tests.conftest import tiny_spec
 
@@ -105,11 +106,11 @@ class InlinePool:
         self.workers = []
         for _ in range(max_workers):
             initializer(*initargs)
-            self.workers.append(pipeline._WORKER)
+            self.workers.append(runner._WORKER)
         self.submitted = 0
 
     def submit(self, fn, *args):
-        pipeline._WORKER = self.workers[self.submitted % len(self.workers)]
+        runner._WORKER = self.workers[self.submitted % len(self.workers)]
         self.submitted += 1
         future = Future()
         future.set_result(fn(*args))
@@ -132,8 +133,8 @@ def recorded(monkeypatch):
         log["shards"][shard] = spec.generator_options.get("device")
         return {}
 
-    monkeypatch.setattr("concurrent.futures.ProcessPoolExecutor", InlinePool)
-    monkeypatch.setattr(pipeline, "_WORKER", None)
+    monkeypatch.setattr(runner, "ProcessPoolExecutor", InlinePool)
+    monkeypatch.setattr(runner, "_WORKER", None)
     monkeypatch.setattr(pipeline, "write_shard", write_shard)
     monkeypatch.setattr(torch.cuda, "set_device", lambda d: log["current"].append(str(d)))
     monkeypatch.setattr(torch, "set_num_threads", log["threads"].append)
@@ -144,20 +145,20 @@ def recorded(monkeypatch):
 
 
 def test_each_local_worker_renders_its_shards_on_its_own_gpu(tmp_path, recorded):
-    pipeline._run_local(gan_spec(tmp_path, device="cuda"), [0, 1, 2, 3], ["cuda:0", "cuda:1"], SilentBar())
+    pipeline.render_shards(gan_spec(tmp_path, device="cuda"), [0, 1, 2, 3], Placement(("cuda:0", "cuda:1")), SilentBar())
     assert recorded["current"] == ["cuda:0", "cuda:1"]  # one worker per GPU, each on its own
     assert recorded["shards"] == {0: "cuda:0", 1: "cuda:1", 2: "cuda:0", 3: "cuda:1"}
     assert recorded["threads"] == [4, 4]  # the CPU cores divided by the workers, as for CPU work
 
 
 def test_a_single_worker_renders_here_on_its_device(tmp_path, recorded):
-    pipeline._run_local(gan_spec(tmp_path), [0, 1], ["cuda:1"], SilentBar())
+    pipeline.render_shards(gan_spec(tmp_path), [0, 1], Placement(("cuda:1",)), SilentBar())
     assert recorded["shards"] == {0: "cuda:1", 1: "cuda:1"}
     assert recorded["current"] == [] and recorded["threads"] == []  # this process is left as it is
 
 
 def test_cpu_workers_stay_on_the_cpu(tmp_path, recorded):
-    pipeline._run_local(tiny_spec(tmp_path), [0, 1], ["cpu", "cpu"], SilentBar())
+    pipeline.render_shards(tiny_spec(tmp_path), [0, 1], Placement(("cpu", "cpu")), SilentBar())
     assert recorded["shards"] == {0: None, 1: None}  # the procedural generator takes no device
     assert recorded["current"] == []
 
@@ -181,7 +182,7 @@ def test_the_index_records_neither_the_device_nor_the_memory_budget(tmp_path):
 
 def test_auto_workers_on_the_cpu_are_the_cores_up_to_the_shard_count(tmp_path, monkeypatch):
     seen = []
-    monkeypatch.setattr(pipeline, "_run_local", lambda spec, shards, devices, bar, threads: seen.append(devices))
+    monkeypatch.setattr(pipeline, "render_shards", lambda spec, shards, placement, bar: seen.append(list(placement.devices)))
     monkeypatch.setattr(pipeline, "usable_cpus", lambda: 8)
     run_sample(tiny_spec(tmp_path / "a"), workers="auto", progress=False)  # 2 shards
     run_sample(tiny_spec(tmp_path / "b", subjects=40), workers="auto", progress=False)  # 20 shards

@@ -14,11 +14,11 @@ import pytest
 pytest.importorskip("vtkmodules", reason="the review window needs VTK")
 
 from labeling_tool.cli import build_queue, main as label_main  # noqa: E402
-from datagen.events import EventLog, parse_event, read_log, read_logs, verdicts  # noqa: E402
+from datagen.dataset.events import EventLog, parse_event, read_log, read_logs, verdicts  # noqa: E402
 from labeling_tool.review import ReviewApp  # noqa: E402
-from datagen.manifests import read_manifest  # noqa: E402
+from datagen.dataset.manifests import read_manifest  # noqa: E402
 from labeling_tool.compiler import compile_manifest, subject_hash  # noqa: E402
-from datagen.preflags import FORMAT as PREFLAGS_FORMAT, write_preflags  # noqa: E402
+from datagen.dataset.preflags import FORMAT as PREFLAGS_FORMAT, write_preflags  # noqa: E402
 from datagen.errors import UserError  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -250,7 +250,7 @@ def test_compile_is_deterministic_versioned_and_immutable(tiny_dataset, tmp_path
 @pytest.mark.parametrize("damage", ["truncate", "flip", "no_sidecar", "bad_sidecar"])
 def test_compile_vouches_only_for_verified_shards(tiny_dataset, tmp_path, capsys, damage):
     import shutil
-    from datagen.shards import sidecar_path, tar_path
+    from datagen.dataset.shards import sidecar_path, tar_path
     ds = tmp_path / "ds"
     shutil.copytree(tiny_dataset, ds)
     tar = tar_path(ds, 1)
@@ -341,7 +341,7 @@ def event_line(**fields) -> str:
 def test_parse_event_checks_every_field(line, message):
     with pytest.raises(ValueError, match=message):
         parse_event(line, "alice")
-    from datagen.events import _common_event
+    from datagen.dataset.events import _common_event
     assert _common_event(line.encode(), "alice") is None  # the fast reader leaves every problem to parse_event
 
 
@@ -352,7 +352,7 @@ def test_parse_event_checks_every_field(line, message):
     event_line() + "  ", " " + event_line(), event_line(subject="subj\u00e9"),
 ])
 def test_the_fast_event_reader_reads_what_parse_event_reads(line):
-    from datagen.events import _common_event
+    from datagen.dataset.events import _common_event
     fast = _common_event(line.encode(), "alice")
     assert fast is None or fast == parse_event(line, "alice")
     assert line != event_line() or fast is not None  # the form the log writes takes the fast path
@@ -489,7 +489,7 @@ def test_stats_without_verdicts_says_so_in_one_line(tiny_dataset, tmp_path, caps
 def test_a_full_disk_is_one_line_naming_the_log_and_keeps_the_saved_verdicts(tiny_dataset, tmp_path, capsys,
                                                                               monkeypatch):
     import errno
-    import datagen.events as events
+    import datagen.dataset.events as events
     labels = tmp_path / "labels"
     real, calls = events.os.fsync, []
 
@@ -511,7 +511,7 @@ def test_a_full_disk_is_one_line_naming_the_log_and_keeps_the_saved_verdicts(tin
 
 def test_a_failed_write_leaves_the_session_where_it_was(app_factory, tmp_path, monkeypatch):
     import errno
-    import datagen.events as events
+    import datagen.dataset.events as events
     app = app_factory()
     app.press("g")
     monkeypatch.setattr(events.os, "fsync", lambda fd: (_ for _ in ()).throw(OSError(errno.ENOSPC, "full")))

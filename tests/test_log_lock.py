@@ -1,4 +1,4 @@
-"""One writer per reviewer log (``datagen/events.py``, :class:`LogLock`), with real processes: a second
+"""One writer per reviewer log (``datagen/dataset/events.py``, :class:`LogLock`), with real processes: a second
 opener is refused while the first holds the log, a killed holder's lock is taken over, racing
 contenders for a stale lock leave exactly one winner, and another machine's lock is judged by its
 heartbeat. Readers take no lock."""
@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from datagen.errors import UserError
-from datagen.events import (
+from datagen.dataset.events import (
     STALE_AFTER_S,
     EventLog,
     LockState,
@@ -32,7 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 HOLDER = """
 import json, sys, time
 from datagen.errors import UserError
-from datagen.events import EventLog
+from datagen.dataset.events import EventLog
 labels, start, events = sys.argv[1], float(sys.argv[2]), json.loads(sys.argv[3])
 while time.time() < start:
     pass
@@ -141,7 +141,7 @@ def test_a_killed_holder_is_taken_over(tmp_path):
 
 def test_a_reused_pid_is_taken_over(tmp_path):
     """A lock of this machine whose pid now belongs to another process (its start time differs)."""
-    from datagen.events import _boot_id
+    from datagen.dataset.events import _boot_id
 
     labels = tmp_path / "labels"
     fake_lock(labels, 0, host=socket.gethostname(), boot_id=_boot_id(), pid=os.getpid(), process_start="1")

@@ -15,7 +15,7 @@ import time
 import pytest
 import torch
 
-from datagen.manifests import read_manifest
+from datagen.dataset.manifests import read_manifest
 from panolam.checkpoints import load_model
 from panolam.config import TrainConfig, preset
 from panolam.evaluate import NOVEL, baselines, evaluate

@@ -18,9 +18,10 @@ from scipy import ndimage as ndi
 
 from datagen.errors import DatasetError
 from datagen.pipeline import JobSpec, run_sample, software_info
-from datagen.shards import FORMAT as DATASET_FORMAT, iter_tar_samples
-from datagen.shards import ShardWriter, SubjectSample, encode_subject, shard_name, subject_id
-from datagen import preflags as report_format
+from datagen.dataset.shards import FORMAT as DATASET_FORMAT, iter_tar_samples
+from datagen.dataset.shards import ShardWriter, SubjectSample, encode_subject, shard_name, subject_id
+from datagen.dataset import Dataset, preflags as report_format
+from datagen.runner import Placement
 from labeling_tool import preflags
 from labeling_tool.preflags.detector import FALSE_ALARM_RATE, ramp_flag
 from labeling_tool.preflags.duplicate import nearest
@@ -867,7 +868,7 @@ def test_report_shape_and_order(synthetic_dataset):
 def test_deterministic_and_workers_agree(synthetic_dataset):
     a = preflags.score_dataset(synthetic_dataset)
     b = preflags.score_dataset(synthetic_dataset)
-    c = preflags.score_dataset(synthetic_dataset, workers=2)
+    c = preflags.score_dataset(synthetic_dataset, placement=Placement(("cpu", "cpu")))
     assert strip_timing(a) == strip_timing(b) == strip_timing(c)
 
 
@@ -893,13 +894,13 @@ def test_truth_folder_is_never_read(synthetic_dataset, tmp_path, monkeypatch):
 
 def test_workers_read_subjects_by_byte_range(synthetic_dataset):
     """What a worker reads through the sidecar's byte range equals a full scan of the tar."""
-    tasks, skipped = preflags.scoring.plan(synthetic_dataset)
+    tasks, skipped = preflags.scoring.plan(Dataset(synthetic_dataset))
     assert skipped == [] and len(tasks) == 19
     scanned = {}
     for i in range(3):
         scanned.update(dict(iter_tar_samples(synthetic_dataset / f"shard-00000{i}.tar")))
     for shard, tar, key, start, end in tasks:
-        from datagen.shards import read_range
+        from datagen.dataset.shards import read_range
         assert read_range(tar, key, start, end) == scanned[key]
 
 
@@ -967,7 +968,7 @@ def test_procedural_dataset_end_to_end(tmp_path):
     run_sample(JobSpec(out=str(root), gan="procedural", generator_options={"grid_resolution": 32, "defect_rate": 0.5},
                        protocol="360", subjects=4, resolution=32, views=10, seed=3, shard_size=2,
                        software=software_info()), progress=False)
-    report = preflags.score_dataset(root, workers=2)
+    report = preflags.score_dataset(root, placement=Placement(("cpu", "cpu")))
     assert len(report["subjects"]) == 4
     assert all(0 <= s["score"] <= 1 for s in report["subjects"])
     shutil.rmtree(root / "truth")
@@ -1027,7 +1028,7 @@ def test_too_few_verdicts_learn_nothing():
 
 
 def test_auto_learn_from_event_logs(synthetic_dataset, tmp_path, capsys):
-    from datagen.events import EventLog
+    from datagen.dataset.events import EventLog
     from labeling_tool.cli import main as label_main
     root = tmp_path / "ds"
     shutil.copytree(synthetic_dataset, root)

@@ -8,7 +8,7 @@ import pytest
 
 ray = pytest.importorskip("ray", reason="the ray backend needs the optional extra: pip install -e '.[ray]'")
 
-from datagen.preflags import write_preflags  # noqa: E402
+from datagen.dataset.preflags import write_preflags  # noqa: E402
 from labeling_tool import preflags  # noqa: E402
 from labeling_tool.cli import main as label_main  # noqa: E402
 

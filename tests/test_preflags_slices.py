@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from datagen.errors import DatasetError, UserError
-from datagen.preflags import write_preflags
+from datagen.dataset.preflags import write_preflags
 from labeling_tool import preflags
 from labeling_tool.cli import main as label_main
 from labeling_tool.preflags.registry import DETECTORS

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from datagen.cameras import depth_points
-from datagen.shards import decode_sample, read_fields
+from datagen.dataset.shards import decode_sample, read_fields
 from datagen.verify import verify_dataset
 from labeling_tool.preflags import score_dataset
 from panolam.data import BACKGROUND, accepted_subjects, load_views

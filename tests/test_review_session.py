@@ -7,7 +7,7 @@ from contextlib import ExitStack
 import pytest
 
 from datagen.errors import UserError
-from datagen.events import read_log
+from datagen.dataset.events import read_log
 from labeling_tool.review import QueueItem, ReviewSession
 
 SUBJECTS = [f"subj{i:08d}" for i in range(7)]

@@ -24,13 +24,13 @@ from datagen.errors import UserError  # noqa: E402
 from datagen.files import atomic_write  # noqa: E402
 from datagen.pipeline import JobSpec, make_index, run_sample, software_info  # noqa: E402
 from datagen.shapes import decode_mesh  # noqa: E402
-from datagen.shards import (INDEX_NAME, SHAPE_FIELD, ShardWriter, dumps, iter_tar_samples, read_index,  # noqa: E402
+from datagen.dataset.shards import (INDEX_NAME, SHAPE_FIELD, ShardWriter, dumps, iter_tar_samples, read_index,  # noqa: E402
                             subject_id)
 from tests.conftest import tiny_spec  # noqa: E402
 from labeling_tool.review import app as review_app  # noqa: E402
 from labeling_tool.cli import build_queue, main as label_main  # noqa: E402
 from datagen.cameras import depth_points  # noqa: E402
-from datagen.events import EventLog, read_log  # noqa: E402
+from datagen.dataset.events import EventLog, read_log  # noqa: E402
 from datagen.preview import font  # noqa: E402
 from labeling_tool.review import (BACKGROUND, COLORS, FLAG_REASON, HELP, Layout, Prefetcher,  # noqa: E402
                                   QueueItem, ReviewApp, Window, fit_window, polydata, surface_actor, surface_mesh)

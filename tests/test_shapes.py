@@ -34,7 +34,8 @@ from datagen.shapes import (
     extract_shape,
     stored_shape,
 )
-from datagen.shards import SHAPE_FIELD, read_subject, tar_path
+from datagen.dataset import Dataset
+from datagen.dataset.shards import SHAPE_FIELD, tar_path
 from tests.conftest import gan_fixture, tiny_spec
 from tests.simdev import on_device, simulated_device
 
@@ -113,7 +114,7 @@ def test_procedural_mesh_matches_its_renders(shaped):
     for key in ("subj00000000", "subj00000001"):
         data, record = stored_shape(shaped, key)
         mesh = decode_mesh(data, key)
-        sample = read_subject(shaped, key)
+        sample = Dataset(shaped).read_subject(key)
         assert record["resolution"] == SHAPE_RES and record["level"] == 0.0
         tm = trimesh.Trimesh(mesh.vertices.astype(np.float64), mesh.faces, process=False)
         nearest = cKDTree(tm.vertices)
@@ -224,7 +225,7 @@ def test_save_shape_through_verify_and_info(shaped, capsys):
     assert code == 0 and shapes["resolution"] == SHAPE_RES and shapes["subjects"] == 2 and shapes["level"] == 0.0
     index = json.loads((shaped / "index.json").read_text())
     assert index["settings"]["save_shape"] == SHAPE_RES
-    meta = read_subject(shaped, "subj00000001").metadata
+    meta = Dataset(shaped).read_subject("subj00000001").metadata
     assert meta["shape"]["member"] == SHAPE_FIELD and meta["shape"]["faces"] > 0
 
 

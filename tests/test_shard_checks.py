@@ -11,9 +11,10 @@ import tarfile
 
 import pytest
 
-import datagen.shards as shards
+import datagen.dataset.shards as shards
 from datagen.errors import DatasetError
-from datagen.shards import check_shards, sidecar_path, tar_path
+from datagen.dataset import Dataset
+from datagen.dataset.shards import sidecar_path, tar_path
 from datagen.verify import verify_dataset
 from labeling_tool.cli import main as label_main
 from panolam.data import check_subject_shards
@@ -80,10 +81,10 @@ def copy(tiny_dataset, tmp_path):
 
 @pytest.mark.parametrize("kind", DAMAGES)
 def test_tampered_sidecars_are_refused_by_every_reader_as_by_verify(copy, tmp_path, capsys, kind):
-    assert check_shards(copy, [0, 1]) == {}  # remembered as passed before the damage
+    assert Dataset(copy).check_shards([0, 1]) == {}  # remembered as passed before the damage
     damage(copy, kind)
     assert any("shard-000000" in p for p in verify_dataset(copy)["problems"])
-    problems = check_shards(copy, [0, 1])
+    problems = Dataset(copy).check_shards([0, 1])
     assert list(problems) == [0] and "shard-000000" in problems[0]
     with pytest.raises(DatasetError, match="shard-000000"):
         check_subject_shards(copy, [("subj00000000", 0)])  # what training runs before it reads
@@ -105,11 +106,11 @@ def test_a_second_check_reads_no_tar_and_a_changed_sidecar_is_checked_again(copy
     monkeypatch.setattr(shards, "sha256_file", lambda p: hashed.append(p) or real_hash(p))
     monkeypatch.setattr(shards, "tar_layout", lambda p: walked.append(p) or real_walk(p))
     (copy / shards.SHARD_CHECKS).unlink(missing_ok=True)
-    assert check_shards(copy, [0, 1]) == {} and len(hashed) == len(walked) == 2
+    assert Dataset(copy).check_shards([0, 1]) == {} and len(hashed) == len(walked) == 2
     hashed.clear(), walked.clear()
-    assert check_shards(copy, [0, 1]) == {} and hashed == walked == []
+    assert Dataset(copy).check_shards([0, 1]) == {} and hashed == walked == []
     damage(copy, "offset_digit", 0)
-    assert list(check_shards(copy, [0, 1])) == [0] and hashed == [tar_path(copy, 0)]
+    assert list(Dataset(copy).check_shards([0, 1])) == [0] and hashed == [tar_path(copy, 0)]
 
 
 def test_layout_of_a_good_tar_matches_its_sidecar(tiny_dataset):
@@ -118,3 +119,45 @@ def test_layout_of_a_good_tar_matches_its_sidecar(tiny_dataset):
     assert [k for k, _, _ in runs] == side["subjects"]
     assert {k: [s, e] for k, s, e in runs} == side["offsets"]
     assert runs[0][1] == 0 and runs[0][2] == runs[1][1]
+
+
+def _tar_runs_by_tarfile(path) -> list[tuple]:
+    """The same runs from tarfile's own reading, to compare with."""
+    runs = []
+    with tarfile.open(path, "r:") as tar:
+        for m in tar:
+            end = m.offset_data + -(-m.size // 512) * 512
+            key = m.name.partition(".")[0]
+            if runs and runs[-1][0] == key:
+                runs[-1][2] = end
+            else:
+                runs.append([key, m.offset, end])
+    return [tuple(r) for r in runs]
+
+
+def test_the_header_walk_agrees_with_tarfile_and_falls_back_to_it(tiny_dataset, tmp_path):
+    for i in (0, 1):
+        assert shards.tar_layout(tar_path(tiny_dataset, i)) == _tar_runs_by_tarfile(tar_path(tiny_dataset, i))
+    odd = tmp_path / "odd.tar"  # a long name takes an extended header, a link another member type
+    with tarfile.open(odd, "w", format=tarfile.PAX_FORMAT) as tar:
+        for name, data in (("a" * 120 + ".json", b"{}"), ("b.v00.png", b"x" * 700)):
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            tar.addfile(info, io.BytesIO(data))
+        link = tarfile.TarInfo("b.link")
+        link.type, link.linkname = tarfile.SYMTYPE, "b.v00.png"
+        tar.addfile(link)
+    assert shards.tar_layout(odd) == _tar_runs_by_tarfile(odd) and [k for k, _, _ in shards.tar_layout(odd)] == \
+        ["a" * 120, "b"]
+
+
+def test_a_damaged_tar_header_is_named(tiny_dataset, tmp_path):
+    data = bytearray(tar_path(tiny_dataset, 0).read_bytes())
+    data[5] ^= 0x01  # a letter of the first member's name: its checksum no longer holds
+    bad = tmp_path / "bad.tar"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(DatasetError, match="bad.tar: tar header at byte 0 fails its checksum"):
+        shards.tar_layout(bad)
+    bad.write_bytes(tar_path(tiny_dataset, 0).read_bytes()[:1500])  # cut inside the first member's data
+    with pytest.raises(DatasetError, match="truncated"):
+        shards.tar_layout(bad)

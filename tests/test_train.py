@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from datagen.errors import DatasetError, SettingError
-from datagen.manifests import read_manifest
+from datagen.dataset.manifests import read_manifest
 from panolam import train as train_module
 from panolam.data import TrainingSamples, collate
 from panolam.model import PanoLAM
@@ -126,7 +126,7 @@ def test_the_input_view_is_among_the_targets_unless_asked_otherwise(curated):
 
 
 def test_input_view_keeps_the_stored_detail_targets_are_resized(curated):
-    from datagen.shards import decode_sample, read_fields
+    from datagen.dataset.shards import decode_sample, read_fields
     data, manifest = curated
     samples = TrainingSamples(data, manifest, "train", 3, 16, seed=5, input_resolution=32)
     key, shard = samples.pick(0)
@@ -215,7 +215,7 @@ def test_triplane_feature_loss_on_spherehead_planes(curated):
 
 @pytest.mark.parametrize("model, protocol, kept", [("eg3d", "frontal", False), ("spherehead", "360", True)])
 def test_only_spherehead_planes_reach_training(model, protocol, kept, tmp_path):
-    from datagen.shards import read_index
+    from datagen.dataset.shards import read_index
     from panolam.data import load_views
     from tests.conftest import gan_fixture
     data = tmp_path / model
@@ -529,7 +529,7 @@ def test_a_full_disk_is_one_line_naming_the_file_and_leaves_no_temporary(curated
 def damaged(curated, tmp_path):
     """A copy of the curated dataset; returns it, the manifest, and a training subject's shard and key."""
     import shutil
-    from datagen.shards import tar_path
+    from datagen.dataset.shards import tar_path
     data, manifest = curated
     copy = tmp_path / "copy"
     shutil.copytree(data, copy)
@@ -538,12 +538,14 @@ def damaged(curated, tmp_path):
 
 
 def test_training_checks_its_shards_first_and_remembers_those_that_passed(damaged, monkeypatch):
-    import datagen.shards as shards
+    import datagen.dataset
+    import datagen.dataset.shards as shards
     data, manifest, tar, _ = damaged
     (data / shards.SHARD_CHECKS).unlink(missing_ok=True)  # as remembered by the copied dataset
     hashed = []
     real = shards.sha256_file
     monkeypatch.setattr(shards, "sha256_file", lambda p: hashed.append(p) or real(p))
+    monkeypatch.setattr(datagen.dataset, "sha256_file", lambda p: hashed.append(p) or real(p))  # the index's
     TrainingSamples(data, manifest, "train", 3, 16, 0)
     assert tar in hashed and (data / shards.SHARD_CHECKS).exists()
     hashed.clear()
@@ -565,7 +567,7 @@ def test_a_view_that_does_not_decode_names_the_shard_and_the_subject(damaged):
     """A shard whose sidecar vouches for a broken image (written broken): decoding says where."""
     import tarfile
     from datagen.files import sha256_file
-    from datagen.shards import read_sidecar, sidecar_path
+    from datagen.dataset.shards import read_sidecar, sidecar_path
     data, manifest, tar, key = damaged
     with tarfile.open(tar) as t:
         members = [(m, t.extractfile(m).read()) for m in t]

@@ -14,7 +14,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from datagen.shards import to_uint8
+from datagen.dataset.shards import to_uint8
 
 from .detect import Box, landmarks
 from .images import to_float_rgb

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from datagen.errors import UserError
-from datagen.shards import to_uint8
+from datagen.dataset.shards import to_uint8
 
 
 class FaceError(UserError, ValueError):

@@ -17,13 +17,14 @@ it measured. Scores only order the review queue; nothing is deleted.
     implausible  mask area or depth far from the dataset
     duplicate    near-duplicates of another subject
 
+    from datagen.dataset.preflags import write_preflags
+    from datagen.runner import Placement
     from labeling_tool.preflags import score_dataset
-    from datagen.preflags import write_preflags
 
-    if __name__ == "__main__":  # workers > 1 start in fresh processes, which import the calling script
-        write_preflags("/data/heads", score_dataset("/data/heads", progress=True, workers=2))
+    if __name__ == "__main__":  # local workers start in fresh processes, which import the calling script
+        write_preflags("/data/heads", score_dataset("/data/heads", progress=True, placement=Placement(("cpu", "cpu"))))
 
-The report format is described in ``datagen.preflags``; ``label-tool auto`` is the command line.
+The report format is described in ``datagen.dataset.preflags``; ``label-tool auto`` is the command line.
 """
 from .detector import FALSE_ALARM_RATE, FLAG_AT, Detector, Flag
 from .scoring import extract, measure_subject, score, score_dataset

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from datagen.cameras import fov_to_focal
-from datagen.shards import view_name
+from datagen.dataset.shards import view_name
 
 from .blur import alpha_edge_width, edge_sharpness
 from .detector import Detector, Flag, ramp_flag

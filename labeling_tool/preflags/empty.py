@@ -5,7 +5,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from datagen.shards import view_name
+from datagen.dataset.shards import view_name
 
 from .detector import Detector, Flag
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage as ndi
 
-from datagen.shards import view_name
+from datagen.dataset.shards import view_name
 
 from .detector import Detector, Flag
 from .imaging import bbox, blob_response, box, erode, fill_holes, nearest_fill, ramp, robust_tail

@@ -25,7 +25,7 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from datagen.faces import cnn_detector, hog_detector
-from datagen.shards import view_name
+from datagen.dataset.shards import view_name
 
 from .detector import Detector, Flag, ramp_flag
 from .imaging import blob_response, central, erode, nearest_fill, ramp, robust

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from datagen.errors import UserError
-from datagen.events import read_logs, verdicts
+from datagen.dataset.events import read_logs, verdicts
 
 MIN_VERDICTS = 20         # fewer verdicts (or no bad ones, or no good ones) and nothing is learned
 THUMB_COMPONENTS = 8

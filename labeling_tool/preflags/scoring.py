@@ -7,23 +7,25 @@ records without decoding again.
 """
 from __future__ import annotations
 
-import multiprocessing as mp
 import time
-from pathlib import Path
+from itertools import groupby
 
 import numpy as np
 
 from datagen.command_line import progress_bar
 from datagen.errors import DatasetError
-from datagen.preflags import FORMAT
-from datagen.shards import check_shards, index_sha256, read_index, read_sidecar, shard_index, tar_path
-from datagen.threads import choose, use
+from datagen.dataset.preflags import FORMAT
+from datagen.dataset import Dataset
+from datagen.dataset.shards import read_sidecar, shard_index, tar_path
+from datagen.runner import Placement, run_tasks
 
 from .detector import (FALSE_ALARM_RATE, FLAG_AT, MIN_SUBJECTS, NULL_QUANTILES, NULL_ROUNDS, calibrated_cuts,
                        evidence, recalibrated)
 from .learn import learn_from
 from .registry import DETECTORS
 from .views import SubjectViews
+
+CHUNK_SUBJECTS = 16  # subjects of one shard per task: a few shards still spread over every worker
 
 
 def _failed(key: str, error: str) -> dict:
@@ -47,18 +49,17 @@ def measure(task):
         return shard, _failed(key, f"{tar}: subject {key}: measuring failed ({type(e).__name__}: {e})")
 
 
-def plan(root, skip_incomplete: bool = False, shards=None) -> tuple[list, list]:
+def plan(dataset: Dataset, skip_incomplete: bool = False, shards=None) -> tuple[list, list]:
     """(tasks without detectors, names of skipped shards) for every subject of the shards numbered
-    ``shards`` (default: all the index lists), in index order.
+    ``shards`` (default: all the index lists) of ``dataset``, in index order.
 
-    Each shard must pass :func:`datagen.shards.check_shards` (sidecar, size, sha256, subjects and byte
+    Each shard must pass :func:`datagen.dataset.shards.check_shards` (sidecar, size, sha256, subjects and byte
     ranges; cached): one that fails is a DatasetError naming it, unless ``skip_incomplete`` (then it
     is listed as skipped).
     """
-    root = Path(root)
-    index = read_index(root)
-    listed = [sh for sh in index["shards"] if shards is None or shard_index(sh["name"]) in shards]
-    problems = check_shards(root, [shard_index(sh["name"]) for sh in listed], index)
+    root = dataset.root
+    listed = [sh for sh in dataset.shards if shards is None or shard_index(sh["name"]) in shards]
+    problems = dataset.check_shards([shard_index(sh["name"]) for sh in listed])
     tasks, skipped = [], []
     for shard in listed:
         i = shard_index(shard["name"])
@@ -74,42 +75,37 @@ def plan(root, skip_incomplete: bool = False, shards=None) -> tuple[list, list]:
     return tasks, skipped
 
 
-def _pool_context():
-    """Workers forked from a fresh server process that has imported the detectors, not from this one:
-    this process may already run native thread pools (dlib's CNN detector, BLAS), and a plain fork
-    copies their locks mid-use, so workers can hang. Spawned workers where there is no forkserver."""
-    if "forkserver" not in mp.get_all_start_methods():
-        return mp.get_context("spawn")
-    ctx = mp.get_context("forkserver")
-    ctx.set_forkserver_preload([__name__])
-    return ctx
+def _measure_task(detectors, chunk: list, device: str, report) -> list:
+    """The runner's task (:mod:`datagen.runner`): the (shard, record) of each planned subject of ``chunk``."""
+    records = []
+    for t in chunk:
+        records.append(measure(t + (detectors,)))
+        report(1)
+    return records
 
 
-def extract(root, workers: int = 1, progress: bool = False, detectors=DETECTORS,
-            skip_incomplete: bool = False, shards=None, threads: int | None = None) -> dict:
+def extract(dataset, placement: Placement = Placement(), progress: bool = False, detectors=DETECTORS,
+            skip_incomplete: bool = False, shards=None) -> dict:
     """First pass: {"index_sha256", "records": [(shard, record), ...] in index order, "skipped_shards",
-    "seconds"} for the shards numbered ``shards`` (default all). With ``workers`` > 1 the workers are
-    fresh processes (see ``_pool_context``), which import the calling script as a module: scripts
-    guard their entry point (``if __name__ == "__main__":``). Each worker runs ``choose(workers, threads)``
-    torch threads (:mod:`datagen.threads`)."""
+    "seconds", "tasks"} for the shards numbered ``shards`` (default all) of ``dataset`` (a Dataset or its
+    folder), measured where ``placement`` says in tasks of at most ``CHUNK_SUBJECTS`` subjects of one
+    shard. Local workers are fresh processes (:func:`datagen.runner.worker_context`), which import the
+    calling script as a module: scripts guard their entry point (``if __name__ == "__main__":``)."""
     t0 = time.perf_counter()
-    tasks, skipped = plan(root, skip_incomplete, shards)
-    tasks = [t + (detectors,) for t in tasks]
+    dataset = Dataset.of(dataset)
+    tasks, skipped = plan(dataset, skip_incomplete, shards)
+    groups = [list(group) for _, group in groupby(tasks, key=lambda t: t[0])]
+    chunks = [g[i:i + CHUNK_SUBJECTS] for g in groups for i in range(0, len(g), CHUNK_SUBJECTS)]
     bar = progress_bar(len(tasks), "subj", "preflags", progress)
-    if workers > 1 and len(tasks) > 1:
-        with _pool_context().Pool(workers, initializer=use, initargs=(choose(workers, threads),)) as pool:
-            records = []
-            for r in pool.imap(measure, tasks, chunksize=4):
-                records.append(r)
-                bar.update(1)
-    else:
-        records = []
-        for t in tasks:
-            records.append(measure(t))
-            bar.update(1)
-    bar.close()
-    return {"index_sha256": index_sha256(root), "records": records, "skipped_shards": skipped,
-            "seconds": time.perf_counter() - t0}
+    measured = [None] * len(chunks)
+    try:
+        for i, records in run_tasks(_measure_task, detectors, chunks, [len(c) for c in chunks], placement, bar,
+                                    lambda chunk: f"measuring {chunk[0][2]}..{chunk[-1][2]}"):
+            measured[i] = records
+    finally:
+        bar.close()
+    return {"index_sha256": dataset.index_sha256, "records": [r for records in measured for r in records],
+            "skipped_shards": skipped, "seconds": time.perf_counter() - t0, "tasks": len(chunks)}
 
 
 def thumbnails(extracted: dict, report: dict) -> list:
@@ -178,17 +174,19 @@ def score(extracted: dict, detectors=DETECTORS, false_alarm_rate: float | None =
     }
 
 
-def score_dataset(root, progress: bool = False, workers: int = 1, detectors=DETECTORS,
-                  skip_incomplete: bool = False, labels=None, false_alarm_rate: float | None = FALSE_ALARM_RATE,
-                  threads: int | None = None) -> dict:
-    """Score every subject of the dataset at ``root``; returns the report (subjects sorted worst first).
+def score_dataset(dataset, progress: bool = False, placement: Placement = Placement(), detectors=DETECTORS,
+                  skip_incomplete: bool = False, labels=None, false_alarm_rate: float | None = FALSE_ALARM_RATE
+                  ) -> dict:
+    """Score every subject of ``dataset`` (a Dataset or its folder), measured where ``placement`` says;
+    returns the report (subjects sorted worst first).
 
     ``labels``: a folder of reviewers' event logs; the queue's ``rank`` then learns from their
     verdicts (``learn.py``). ``false_alarm_rate``: as in :func:`score`.
     """
     t0 = time.perf_counter()
-    extracted = extract(root, max(1, int(workers)), progress, detectors, skip_incomplete, threads=threads)
-    return finish(extracted, t0, {"workers": max(1, int(workers))}, detectors, labels, false_alarm_rate)
+    extracted = extract(dataset, placement, progress, detectors, skip_incomplete)
+    timing = {"backend": placement.backend, "workers": len(placement.devices), "tasks": extracted["tasks"]}
+    return finish(extracted, t0, timing, detectors, labels, false_alarm_rate)
 
 
 def finish(extracted: dict, t0: float, timing: dict, detectors=DETECTORS, labels=None,

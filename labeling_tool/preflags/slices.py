@@ -1,7 +1,7 @@
 """Pre-flags at scale: array jobs measure slices of the shards, one merge scores the whole dataset.
 
 ``label-tool auto DIR --shard-index K --num-shards N`` measures the subjects of the shards s with
-s % N == K (the rule of ``datagen sample``'s array jobs, :func:`datagen.shards.job_shards`) and writes
+s % N == K (the rule of ``datagen sample``'s array jobs, :func:`datagen.dataset.shards.job_shards`) and writes
 their records to ``<folder>/slice-K-of-N.json`` (folder: ``DIR/preflags-slices`` or ``--out``),
 atomically. ``label-tool auto DIR --merge`` reads the N slices and scores the dataset: the
 report equals a one-process run's apart from its ``timing``. A slice file::
@@ -29,7 +29,9 @@ import numpy as np
 
 from datagen.errors import DatasetError, UserError
 from datagen.files import atomic_write, read_json
-from datagen.shards import index_sha256, job_shards, read_index, shard_index
+from datagen.dataset import Dataset
+from datagen.dataset.shards import job_shards
+from datagen.runner import Placement
 
 from .detector import FALSE_ALARM_RATE
 from .scoring import extract, finish
@@ -98,36 +100,33 @@ def decode(value):
     return {k: decode(v) for k, v in value["d"].items()}
 
 
-def slice_shards(root, k: int, n: int, index: dict | None = None) -> list[int]:
-    """The shard numbers of slice ``k`` of ``n`` among those the dataset index (``index``, read when None) lists."""
-    listed = [shard_index(sh["name"]) for sh in (read_index(root) if index is None else index)["shards"]]
+def slice_shards(dataset: Dataset, k: int, n: int) -> list[int]:
+    """The shard numbers of slice ``k`` of ``n`` among those the dataset index lists."""
+    listed = dataset.shard_numbers
     mine = set(job_shards(max(listed, default=-1) + 1, k, n))
     return [i for i in listed if i in mine]
 
 
-def write_slice(root, k: int, n: int, extracted: dict, out=None, detectors=DETECTORS, index: dict | None = None
-                ) -> Path:
-    """Write the records ``extracted`` (:func:`scoring.extract` of slice ``k`` of ``n``) atomically;
-    ``index``: the dataset index (read when None)."""
+def write_slice(dataset: Dataset, k: int, n: int, extracted: dict, out=None, detectors=DETECTORS) -> Path:
+    """Write the records ``extracted`` (:func:`scoring.extract` of slice ``k`` of ``n``) atomically."""
     skipped = list(extracted["skipped_shards"])
-    index = read_index(root) if index is None else index
-    names = {shard_index(sh["name"]): sh["name"] for sh in index["shards"]}
-    measured = [names[i] for i in slice_shards(root, k, n, index) if names[i] not in skipped]
+    names = dict(zip(dataset.shard_numbers, (sh["name"] for sh in dataset.shards)))
+    measured = [names[i] for i in slice_shards(dataset, k, n) if names[i] not in skipped]
     doc = {"format": SLICE_FORMAT, "dataset_index_sha256": extracted["index_sha256"],
            "detectors_sha256": detectors_sha256(detectors), "slice": [k, n],
            "shards": measured, "skipped_shards": skipped, "seconds": extracted["seconds"],
            "records": [[shard, encode(r)] for shard, r in extracted["records"]]}
-    path = slice_path(slices_folder(root, out), k, n)
+    path = slice_path(slices_folder(dataset.root, out), k, n)
     path.parent.mkdir(parents=True, exist_ok=True)
     return atomic_write(path, (json.dumps(doc, separators=(",", ":"), allow_nan=False) + "\n").encode())
 
 
-def read_slices(root, out=None, detectors=DETECTORS) -> dict:
+def read_slices(dataset: Dataset, out=None, detectors=DETECTORS) -> dict:
     """The records of every slice in the folder, as :func:`scoring.extract` returns them for the
     whole dataset (index order; ``seconds``: the slices' measuring time added up). A UserError or
     DatasetError in one line when a slice is missing, stale, from other detector settings, or the
     folder holds slices of two splits."""
-    root = Path(root)
+    root = dataset.root
     folder = slices_folder(root, out)
     found = {}
     for p in sorted(folder.glob("slice-*-of-*.json")) if folder.is_dir() else []:
@@ -146,10 +145,9 @@ def read_slices(root, out=None, detectors=DETECTORS) -> dict:
     if missing:
         raise UserError(f"{slice_path(folder, missing[0], n)}: missing ({len(missing)} of the {n} slices are not "
                         f"measured yet); run 'label-tool auto {root} --shard-index {missing[0]} --num-shards {n}'")
-    index_sha, det_sha = index_sha256(root), detectors_sha256(detectors)
-    index = read_index(root)
-    shards = index["shards"]
-    names = {shard_index(sh["name"]): sh["name"] for sh in shards}
+    index_sha, det_sha = dataset.index_sha256, detectors_sha256(detectors)
+    shards = dataset.shards
+    names = dict(zip(dataset.shard_numbers, (sh["name"] for sh in shards)))
     subjects = {sh["name"]: sh["subjects"] for sh in shards}
     by_shard, skipped, seconds = {}, set(), 0.0
     for k in range(n):
@@ -162,7 +160,7 @@ def read_slices(root, out=None, detectors=DETECTORS) -> dict:
             raise UserError(f"{path}: measured with other detector settings or pre-flags code; {rerun}")
         try:
             held = set(doc["shards"]) | set(doc["skipped_shards"])
-            if doc["slice"] != [k, n] or held != {names[i] for i in slice_shards(root, k, n, index)}:
+            if doc["slice"] != [k, n] or held != {names[i] for i in slice_shards(dataset, k, n)}:
                 raise DatasetError(f"{path}: does not hold the shards of slice {k} of {n}; {rerun}")
             skipped.update(doc["skipped_shards"])
             seconds += float(doc["seconds"])
@@ -184,20 +182,21 @@ def read_slices(root, out=None, detectors=DETECTORS) -> dict:
             "seconds": seconds, "slices": n}
 
 
-def measure_slice(root, k: int, n: int, out=None, workers: int = 1, progress: bool = False,
-                  detectors=DETECTORS, skip_incomplete: bool = False, threads: int | None = None) -> tuple[Path, dict]:
-    """Measure slice ``k`` of ``n`` and write it; returns (its path, the extract)."""
-    extracted = extract(root, workers, progress, detectors, skip_incomplete, shards=slice_shards(root, k, n),
-                        threads=threads)
-    return write_slice(root, k, n, extracted, out, detectors), extracted
+def measure_slice(dataset, k: int, n: int, out=None, placement: Placement = Placement(), progress: bool = False,
+                  detectors=DETECTORS, skip_incomplete: bool = False) -> tuple[Path, dict]:
+    """Measure slice ``k`` of ``n`` of ``dataset`` (a Dataset or its folder) where ``placement`` says and
+    write it; returns (its path, the extract)."""
+    dataset = Dataset.of(dataset)
+    extracted = extract(dataset, placement, progress, detectors, skip_incomplete, shards=slice_shards(dataset, k, n))
+    return write_slice(dataset, k, n, extracted, out, detectors), extracted
 
 
-def merge_slices(root, out=None, detectors=DETECTORS, labels=None, false_alarm_rate: float | None = FALSE_ALARM_RATE
+def merge_slices(dataset, out=None, detectors=DETECTORS, labels=None, false_alarm_rate: float | None = FALSE_ALARM_RATE
                  ) -> dict:
     """The report of the whole dataset from its slices (see :func:`read_slices`); ``labels`` and
     ``false_alarm_rate`` as in :func:`scoring.score_dataset`. Its ``timing`` counts the slices' measuring seconds added up
     and the merge's own."""
     t0 = time.perf_counter()
-    extracted = read_slices(root, out, detectors)
+    extracted = read_slices(Dataset.of(dataset), out, detectors)
     return finish(extracted, t0 - extracted["seconds"], {"slices": extracted["slices"]}, detectors, labels,
                   false_alarm_rate)

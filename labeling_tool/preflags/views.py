@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from datagen.errors import DatasetError
-from datagen.shards import decode_exr, decode_png, read_range, view_name
+from datagen.dataset.shards import decode_exr, decode_png, read_range, view_name
 
 from .imaging import downsample, wrap
 

@@ -20,7 +20,7 @@ import numpy as np
 from PIL import Image
 
 from datagen.errors import UserError
-from datagen.events import REASONS
+from datagen.dataset.events import REASONS
 
 from .layout import (COLORS, NOTICE_COLORS, draw_hud, help_panel, hud_height, review_frame, text_size,
                      to_vtk_order)

@@ -1,6 +1,6 @@
 """Reading subjects for the review window: only the members asked for, by their byte ranges.
 
-:func:`datagen.shards.read_range` copies out a subject's whole byte range (every view's image, mask
+:func:`datagen.dataset.shards.read_range` copies out a subject's whole byte range (every view's image, mask
 and depth); a triage page needs one image of each of 40 subjects, so this reader keeps each
 subject's member table (from the tar headers in its range) and reads single members.
 """
@@ -15,7 +15,7 @@ import numpy as np
 
 from datagen.cameras import angle_between
 from datagen.errors import DatasetError
-from datagen.shards import decode_png, read_sidecar, shard_index, tar_path
+from datagen.dataset.shards import decode_png, read_sidecar, shard_index, tar_path
 
 from .session import QueueItem
 

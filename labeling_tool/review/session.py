@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 from datagen.defects import DEFECT_CLASSES, REASON_LABELS
 from datagen.errors import UserError
-from datagen.events import DECISIONS, EventLog, is_decision
+from datagen.dataset.events import DECISIONS, EventLog, is_decision
 
 REASON_SHORT = REASON_LABELS
 # the reason a triage click or space gives a cell, from its strongest pre-flag (labeling_tool.preflags)

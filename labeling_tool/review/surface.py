@@ -8,7 +8,7 @@ import pyvista as pv
 from datagen.cameras import depth_points
 from datagen.errors import DatasetError
 from datagen.shapes import checked_mesh
-from datagen.shards import SHAPE_FIELD, decode_exr
+from datagen.dataset.shards import SHAPE_FIELD, decode_exr
 
 from .reader import decode_image
 

@@ -35,9 +35,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from .errors import DatasetError
-from .files import atomic_write, read_json
-from .shards import index_sha256
+from ..errors import DatasetError
+from ..files import atomic_write, read_json
+from . import Dataset
 
 FORMAT = "panolam-preflags/1"
 QUEUE_FORMAT = "panolam-preflags-queue/1"
@@ -93,6 +93,6 @@ def read_preflags(root, path=None) -> dict:
     return read_json(path, "pre-flags report", FORMAT)
 
 
-def is_stale(root, report: dict) -> bool:
-    """True when the dataset's index.json changed since the report was made."""
-    return index_sha256(root) != report.get("dataset_index_sha256")
+def is_stale(dataset, report: dict) -> bool:
+    """True when the dataset's (a :class:`Dataset` or its folder) index.json changed since the report was made."""
+    return Dataset.of(dataset).index_sha256 != report.get("dataset_index_sha256")

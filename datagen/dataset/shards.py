@@ -34,8 +34,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from .errors import DatasetError, SettingError
-from .files import atomic_write, read_json, require, sha256_file
+from ..errors import DatasetError, SettingError
+from ..files import atomic_write, read_json, require, sha256_file
 
 FORMAT = "panolam-heads/1"
 INDEX_NAME = "index.json"
@@ -396,22 +396,6 @@ def decode_sample(key: str, fields: dict, where="", views=None, depth: bool = Tr
     return SubjectSample(key, meta, rgb, alpha, depths, arrays)
 
 
-def find_shard(root, key: str) -> int:
-    """The number of the shard the dataset index puts subject ``key`` in; a DatasetError when none does."""
-    for shard in read_index(root)["shards"]:
-        if key in shard["subjects"]:
-            return shard_index(shard["name"])
-    raise DatasetError(f"{Path(root) / INDEX_NAME}: no subject {key} in this dataset")
-
-
-def read_subject(root, key: str) -> SubjectSample:
-    """Read one subject by id through the dataset index and the shard's byte ranges."""
-    i = find_shard(root, key)
-    if not tar_path(root, i).exists():
-        raise DatasetError(f"{tar_path(root, i)}: shard holding {key} is missing (not generated yet?)")
-    return decode_sample(key, read_fields(root, i, key), str(tar_path(root, i)))
-
-
 # ----------------------------------------------------------------------------------------------
 # The check readers run before they rely on shards (pre-flags, manifest compilation, training)
 
@@ -421,21 +405,61 @@ _CHECKS = "size+sha256+layout/1"  # what a remembered pass vouches for
 
 def tar_layout(path) -> list[tuple[str, int, int]]:
     """(subject, start, end) of each run of members sharing a key, in tar order, from the member
-    headers alone (tarfile seeks past the data): the byte range [start, end) a writer records, from
-    the first member's header to the end of the last member's 512-byte-padded data."""
-    runs: list[list] = []
+    headers alone: the byte range [start, end) a writer records, from the first member's header to the
+    end of the last member's 512-byte-padded data. Plain ustar headers (what :class:`ShardWriter`
+    writes) are walked here; a tar with other members (extended headers, links) is read with tarfile."""
     try:
-        with tarfile.open(path, "r:") as tar:
-            for m in tar:
-                key = m.name.partition(".")[0]
-                end = m.offset_data + -(-m.size // tarfile.BLOCKSIZE) * tarfile.BLOCKSIZE
-                if runs and runs[-1][0] == key:
-                    runs[-1][2] = end
-                else:
-                    runs.append([key, m.offset, end])
+        data = Path(path).read_bytes()
+        members = _ustar_members(data, path)
+        if members is None:
+            with tarfile.open(path, "r:") as tar:
+                members = [(m.name, m.offset, m.offset_data + m.size) for m in tar]
     except (tarfile.TarError, EOFError, OSError) as e:
         raise DatasetError(f"{path}: corrupt or truncated shard ({e})") from None
+    runs: list[list] = []
+    for name, start, end in members:
+        key, end = name.partition(".")[0], -(-end // BLOCK) * BLOCK
+        if runs and runs[-1][0] == key:
+            runs[-1][2] = end
+        else:
+            runs.append([key, start, end])
     return [tuple(r) for r in runs]
+
+
+BLOCK = tarfile.BLOCKSIZE
+_PLAIN_FILE = (b"0", b"\0")
+
+
+def _octal(field: bytes) -> int:
+    return int(field.split(b"\0", 1)[0].strip() or b"0", 8)
+
+
+def _ustar_members(data: bytes, path) -> list[tuple[str, int, int]] | None:
+    """(name, header offset, end of data) of each member of the tar bytes ``data``; None when a member is
+    not a plain file with a plain header. A header whose checksum fails is a DatasetError."""
+    members, offset = [], 0
+    while offset + BLOCK <= len(data):
+        header = data[offset:offset + BLOCK]
+        if not any(header):
+            return members  # the end-of-archive blocks
+        if header[156:157] not in _PLAIN_FILE or header[124] & 0x80:
+            return None
+        try:
+            stored, size = _octal(header[148:156]), _octal(header[124:136])
+        except ValueError:
+            raise DatasetError(f"{path}: unreadable tar header at byte {offset}") from None
+        if stored != sum(header[:148]) + 8 * 32 + sum(header[156:]):
+            raise DatasetError(f"{path}: tar header at byte {offset} fails its checksum")
+        name = header[:100].split(b"\0", 1)[0]
+        prefix = header[345:500].split(b"\0", 1)[0] if header[257:262] == b"ustar" else b""
+        end = offset + BLOCK + size
+        if end > len(data):
+            raise DatasetError(f"{path}: truncated (a member runs past the end of the file)")
+        members.append(((prefix + b"/" + name if prefix else name).decode("utf-8", "replace"), offset, end))
+        offset = end + -size % BLOCK
+    if offset < len(data):
+        raise DatasetError(f"{path}: truncated (a header runs past the end of the file)")
+    return members
 
 
 def _first_difference(got: list, want: list, where: str) -> str:
@@ -467,12 +491,12 @@ def layout_problem(root, i: int, side: dict, subjects: list) -> str | None:
     return None
 
 
-def check_shards(root, shards, index: dict | None = None) -> dict[int, str]:
+def check_shards(root, shards, index: dict) -> dict[int, str]:
     """{shard number: its first problem, one line naming the file} for the shards numbered ``shards``
     of a dataset that fail the check a reader needs before it trusts them; empty when all pass.
 
     Checked: the sidecar is there and readable, the tar has the size and sha256 it records, the
-    sidecar lists the subjects the index (``index``, read when None) lists, and every subject's
+    sidecar lists the subjects the dataset's ``index`` lists, and every subject's
     byte range is where the tar's member headers put it (images are not decoded; ``datagen verify``
     checks everything). A shard that passed is remembered in ``root/.verified-shards.json`` with the
     size, inode, mtime and ctime of its tar and sidecar; while those stay the same it is not hashed
@@ -480,7 +504,6 @@ def check_shards(root, shards, index: dict | None = None) -> dict[int, str]:
     still changes the ctime). A dataset folder that cannot be written is checked in full every time.
     """
     root = Path(root)
-    index = read_index(root) if index is None else index
     listed = {shard_index(sh["name"]): sh["subjects"] for sh in index["shards"]}
     cache_path = root / SHARD_CHECKS
     try:

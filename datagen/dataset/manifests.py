@@ -21,9 +21,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .errors import DatasetError, UserError
-from .files import read_json, require
-from .shards import index_sha256, read_index, shard_index
+from ..errors import DatasetError, UserError
+from ..files import read_json, require
+from . import Dataset
+from .shards import shard_index
 
 FORMAT = "panolam-manifest/1"
 VERDICTS = ("accepted", "rejected")
@@ -58,8 +59,9 @@ def read_manifest(path) -> dict:
 
 
 def check_dataset(manifest: dict, dataset, where="the manifest") -> None:
-    """UserError unless ``manifest`` was compiled for the dataset folder ``dataset`` (same index.json)."""
-    read_index(dataset)
-    if manifest["header"].get("dataset_index_sha256") != index_sha256(dataset):
-        raise UserError(f"{where} was compiled for another dataset than {dataset} (its index.json differs); "
-                        f"compile one for this dataset with 'label-tool compile {dataset} ...'")
+    """UserError unless ``manifest`` was compiled for ``dataset`` (a :class:`Dataset` or its folder; same
+    index.json)."""
+    dataset = Dataset.of(dataset)
+    if manifest["header"].get("dataset_index_sha256") != dataset.index_sha256:
+        raise UserError(f"{where} was compiled for another dataset than {dataset.root} (its index.json differs); "
+                        f"compile one for this dataset with 'label-tool compile {dataset.root} ...'")

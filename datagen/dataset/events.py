@@ -54,8 +54,8 @@ from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 
-from .defects import REVIEW_REASONS
-from .errors import UserError
+from ..defects import REVIEW_REASONS
+from ..errors import UserError
 
 ACTIONS = ("good", "bad", "skip", "undo")
 VERDICTS = ("good", "bad", "skip")
