@@ -12,7 +12,7 @@ from pathlib import Path
 from datagen.errors import SettingError, UserError
 from datagen.files import atomic_write
 from datagen.dataset.manifests import FORMAT, read_manifest
-from datagen.dataset.preflags import is_stale, read_preflags
+from datagen.dataset.preflags import read_flagged
 from datagen.dataset import Dataset
 from datagen.dataset.shards import dumps
 
@@ -138,17 +138,17 @@ def flagged_subjects(dataset: Dataset, required: bool) -> set[str] | None:
     """Subjects the dataset's pre-flags (``label-tool auto``) flag; None when there are none or they are
     stale (made for another index.json), or a UserError when ``required``."""
     try:
-        report = read_preflags(dataset.root)
+        made_for, flagged = read_flagged(dataset.root)
     except UserError as e:
         if required:
             raise SettingError(f"{{unreviewed}} reject-flagged needs pre-flags: {e}") from None
         return None
-    if is_stale(dataset, report):
+    if made_for != dataset.index_sha256:
         if required:
             raise SettingError(f"{{unreviewed}} reject-flagged: the pre-flags of {dataset.root} were made for another "
                                f"index.json; run 'label-tool auto {dataset.root}' again")
         return None
-    return {r["subject"] for r in report["subjects"] if r["flags"]}
+    return flagged
 
 
 VERSION_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")

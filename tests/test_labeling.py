@@ -522,3 +522,22 @@ def test_a_failed_write_leaves_the_session_where_it_was(app_factory, tmp_path, m
     app.press("2")
     assert actions(tmp_path / "labels", "alice") == [("subj00000000", "good", ()),
                                                      ("subj00000001", "bad", ("broken_back",))]
+
+
+def test_compile_reads_the_flags_from_the_queue_file_while_it_is_current(tiny_dataset, tmp_path, monkeypatch):
+    import datagen.dataset.preflags as report_format
+
+    root = with_preflags(tiny_dataset, tmp_path, flagged={"subj00000001"})
+    labels = tmp_path / "labels"
+    labels.mkdir()
+    read = []
+    real = report_format.read_preflags
+    monkeypatch.setattr(report_format, "read_preflags", lambda *a, **k: read.append(a) or real(*a, **k))
+    verdicts = lambda: {r["subject"]: r["verdict"]  # noqa: E731
+                        for r in compile_manifest(root, labels, unreviewed="reject-flagged")["subjects"]}
+    want = {"subj00000000": "accepted", "subj00000001": "rejected", "subj00000002": "accepted"}
+    assert verdicts() == want and read == []  # the 165K-subject report is not parsed
+    queue = json.loads((root / report_format.QUEUE_NAME).read_text())
+    del queue["dataset_index_sha256"]  # a queue written before it said which index it was made for
+    (root / report_format.QUEUE_NAME).write_text(json.dumps(queue))
+    assert verdicts() == want and len(read) == 1  # read from the report instead

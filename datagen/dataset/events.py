@@ -53,6 +53,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import NamedTuple
 
 from ..defects import REVIEW_REASONS
 from ..errors import UserError
@@ -69,8 +70,9 @@ ACQUIRE_WAIT_S = 30.0    # how long an opener waits for takeovers by other conte
 UNWRITTEN_WAIT_S = 2.0   # how long an opener waits for a lock created this instant to be written
 
 
-@dataclass(frozen=True)
-class Event:
+class Event(NamedTuple):
+    """One line of a reviewer's log (a named tuple: a log of 165K events is read into memory at once)."""
+
     seq: int
     time: str
     reviewer: str

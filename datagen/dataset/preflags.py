@@ -24,11 +24,12 @@ the quantiles its null fit spans, the fewest subjects a fit needs and its rounds
 ``<dataset>/preflags-queue.json``, written after each report of the dataset, is what the review window's
 queue needs from it, small enough to open at once with 165K subjects (the report is ~2 KB a subject)::
 
-    {"format": "panolam-preflags-queue/1", "report": {"bytes", "mtime_ns"},
+    {"format": "panolam-preflags-queue/1", "report": {"bytes", "mtime_ns"}, "dataset_index_sha256",
      "subjects": [[subject, score, rank, [[detector, score], ...flags, highest first]], ...]}
 
 ``report`` is the stat of the ``preflags.json`` it was made from: a queue whose report has changed since
-is not used (:func:`read_review_queue` then returns None and the report itself is read).
+is not used (the report itself is read). ``label-tool compile`` reads which subjects are flagged from it
+too (:func:`read_flagged`), so neither needs the whole report.
 """
 from __future__ import annotations
 
@@ -55,7 +56,7 @@ def write_preflags(root, report: dict, path=None) -> Path:
     if own:
         stat = path.stat()
         queue = {"format": QUEUE_FORMAT, "report": {"bytes": stat.st_size, "mtime_ns": stat.st_mtime_ns},
-                 "subjects": queue_rows(report)}
+                 "dataset_index_sha256": report.get("dataset_index_sha256"), "subjects": queue_rows(report)}
         atomic_write(Path(root) / QUEUE_NAME, (json.dumps(queue, separators=(",", ":")) + "\n").encode())
     return path
 
@@ -68,21 +69,37 @@ def queue_rows(report: dict) -> list:
             for r in report["subjects"]]
 
 
-def read_review_queue(root) -> list | None:
-    """The review queue's rows (:func:`queue_rows`) of the dataset at ``root``: from its queue file when that
-    was made from the ``preflags.json`` there now, else from the report; None without a report."""
-    report_path, queue_path = Path(root) / PREFLAGS_NAME, Path(root) / QUEUE_NAME
-    if not report_path.exists():
-        return None
+def _current_queue(root) -> dict | None:
+    """The dataset's queue file when it was made from the ``preflags.json`` there now, else None."""
+    report_path = Path(root) / PREFLAGS_NAME
     try:
-        queue = json.loads(queue_path.read_bytes())
+        queue = json.loads((Path(root) / QUEUE_NAME).read_bytes())
         stat = report_path.stat()
         if queue.get("format") == QUEUE_FORMAT and queue.get("report") == {"bytes": stat.st_size,
                                                                             "mtime_ns": stat.st_mtime_ns}:
-            return queue["subjects"]
+            return queue
     except (OSError, ValueError, AttributeError):
         pass  # missing, unreadable or not a queue: the report has everything
-    return queue_rows(read_preflags(root))
+    return None
+
+
+def read_review_queue(root) -> list | None:
+    """The review queue's rows (:func:`queue_rows`) of the dataset at ``root``: from its queue file when that
+    was made from the ``preflags.json`` there now, else from the report; None without a report."""
+    if not (Path(root) / PREFLAGS_NAME).exists():
+        return None
+    queue = _current_queue(root)
+    return queue["subjects"] if queue is not None else queue_rows(read_preflags(root))
+
+
+def read_flagged(root) -> tuple[str | None, set[str]]:
+    """(the index sha256 the dataset's pre-flags were made for, the subjects they flag), from the queue file
+    when it is current and says the first, else from ``preflags.json``; a DatasetError without a report."""
+    queue = _current_queue(root)
+    if queue is not None and "dataset_index_sha256" in queue:
+        return queue["dataset_index_sha256"], {row[0] for row in queue["subjects"] if row[3]}
+    report = read_preflags(root)
+    return report.get("dataset_index_sha256"), {r["subject"] for r in report["subjects"] if r["flags"]}
 
 
 def read_preflags(root, path=None) -> dict:
