@@ -172,7 +172,7 @@ def _shard_task(spec: JobSpec, shard: int, device: str, report) -> dict:
 def render_shards(spec: JobSpec, shards: list[int], placement: Placement, bar) -> None:
     """Render ``shards`` where ``placement`` says (:func:`datagen.runner.run_tasks`)."""
     units = [len(spec.shard_subjects(s)) * spec.views for s in shards]
-    for _ in run_tasks(_shard_task, spec, shards, units, placement, bar, "shard {}"):
+    for _ in run_tasks(_shard_task, spec, shards, units, placement, bar, lambda shard: f"shard {shard}"):
         pass
 
 

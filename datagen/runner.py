@@ -74,15 +74,15 @@ class RunOptions:
 
 
 def run_tasks(task: Callable, job, items: list, units: list[int], placement: Placement, bar,
-              what: str = "{}") -> Iterator[tuple[int, object]]:
+              describe: Callable[[object], str] = str) -> Iterator[tuple[int, object]]:
     """(position in ``items``, result) of each task as it finishes. ``units``: the progress each item
-    adds to ``bar`` when done (what its task reported is topped up to this). ``what.format(item)`` names
+    adds to ``bar`` when done (what its task reported is topped up to this). ``describe(item)`` names
     an item in errors from Ray."""
     if not items:
         return
     progress = _Progress(bar, units)
     if placement.backend == "ray":
-        yield from _on_ray(task, job, items, placement, progress, what)
+        yield from _on_ray(task, job, items, placement, progress, describe)
     elif len(placement.devices) == 1 or len(items) == 1:
         for i, item in enumerate(items):
             result = task(job, item, placement.devices[0], lambda n, i=i: progress.add(i, n))
@@ -213,7 +213,7 @@ def _ray_task(task: Callable, job, item, threads: int, cuda: bool):
     return task(job, item, device, lambda n: None)
 
 
-def _on_ray(task, job, items, placement: Placement, progress: _Progress, what: str):
+def _on_ray(task, job, items, placement: Placement, progress: _Progress, describe: Callable[[object], str]):
     from .raycluster import ray_connection, ray_results
 
     threads = placement.threads or max(1, usable_cpus() // len(placement.devices))
@@ -222,7 +222,7 @@ def _on_ray(task, job, items, placement: Placement, progress: _Progress, what: s
         remote = ray.remote(**options)(_ray_task)
         pending = {remote.remote(task, job, item, options["num_cpus"], bool(placement.ray_gpus)): i
                    for i, item in enumerate(items)}
-        with closing(ray_results(ray, pending, lambda i: what.format(items[i]))) as finished:
+        with closing(ray_results(ray, pending, lambda i: describe(items[i]))) as finished:
             for i, result in finished:
                 progress.done(i)
                 yield i, result

@@ -1044,3 +1044,15 @@ def test_auto_learn_from_event_logs(synthetic_dataset, tmp_path, capsys):
     assert "learned from 18 verdicts (2 bad): needs at least 20 verdicts" in out
     report = report_format.read_preflags(root)
     assert report["learned"]["verdicts"] == 18 and all("rank" in s for s in report["subjects"])
+
+
+def test_a_report_is_written_piece_by_piece_as_json_dumps_would(tmp_path):
+    report = {"format": report_format.FORMAT, "dataset_index_sha256": "0" * 64,
+              "subjects": [{"subject": f"subj{i:08d}", "score": i / 7, "flags": ["janus"] if i % 2 else [],
+                            "detectors": {"janus": {"score": 0.5, "why": "a face — on the back"}}} for i in range(40)]}
+    path = report_format.write_preflags(tmp_path, report)
+    assert path.read_bytes() == (json.dumps(report, indent=1, allow_nan=False) + "\n").encode()
+    with pytest.raises(ValueError):
+        report_format.write_preflags(tmp_path, dict(report, subjects=[{"score": float("nan")}]))
+    assert path.read_bytes() == (json.dumps(report, indent=1, allow_nan=False) + "\n").encode()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["preflags-queue.json", "preflags.json"]  # no temporary left

@@ -90,3 +90,39 @@ def test_verify_reports_the_same_with_workers_and_in_parts(tiny_dataset, capsys)
     assert parts == ["OK: 1/1 shards complete and valid, 2 subjects\n", "OK: 1/1 shards complete and valid, 1 subject\n"]
     assert datagen_main(["verify", str(tiny_dataset), "--ray-address", "x:1"]) == 2
     assert capsys.readouterr().err.strip().endswith("--ray-address: only with --backend ray")
+
+
+def test_a_ray_failure_that_is_not_the_tasks_own_names_the_item(monkeypatch):
+    """A worker that dies (not an error of the task) is reported as the item that was lost."""
+    ray = pytest.importorskip("ray", reason="the ray backend needs the optional extra")
+    from contextlib import contextmanager
+    from types import SimpleNamespace
+
+    import datagen.raycluster as raycluster
+
+    class DyingCluster:
+        exceptions = ray.exceptions
+
+        def nodes(self):
+            return [{"Alive": True, "Resources": {"CPU": 2}}]
+
+        def remote(self, **options):
+            return lambda function: SimpleNamespace(remote=lambda task, job, item, *rest: item)  # ref = the item
+
+        def wait(self, refs, num_returns=1):
+            return refs[:1], refs[1:]
+
+        def get(self, ref):
+            raise ray.exceptions.WorkerCrashedError()
+
+        def cancel(self, ref):
+            pass
+
+    @contextmanager
+    def connection(address):
+        yield DyingCluster()
+
+    monkeypatch.setattr(raycluster, "ray_connection", connection)
+    with pytest.raises(RuntimeError, match="^shard 7 failed on Ray \\(WorkerCrashedError\\)"):
+        list(run_tasks(square_task, 1, [7, 8], [1, 1], Placement(backend="ray"), CountingBar(),
+                       lambda shard: f"shard {shard}"))

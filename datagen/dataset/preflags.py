@@ -33,6 +33,7 @@ too (:func:`read_flagged`), so neither needs the whole report.
 """
 from __future__ import annotations
 
+import io
 import json
 from pathlib import Path
 
@@ -52,13 +53,24 @@ def write_preflags(root, report: dict, path=None) -> Path:
         raise ValueError(f"not a pre-flags report (format {report.get('format')!r})")
     own = path is None
     path = Path(root) / PREFLAGS_NAME if own else Path(path)
-    atomic_write(path, (json.dumps(report, indent=1, allow_nan=False) + "\n").encode())
+    atomic_write(path, lambda f: _dump(report, f))
     if own:
         stat = path.stat()
         queue = {"format": QUEUE_FORMAT, "report": {"bytes": stat.st_size, "mtime_ns": stat.st_mtime_ns},
                  "dataset_index_sha256": report.get("dataset_index_sha256"), "subjects": queue_rows(report)}
         atomic_write(Path(root) / QUEUE_NAME, (json.dumps(queue, separators=(",", ":")) + "\n").encode())
     return path
+
+
+def _dump(report: dict, f) -> None:
+    """``json.dumps(report, indent=1) + "\\n"`` written piece by piece: a 165K-subject report (~320 MB) is never
+    held as one string."""
+    text = io.TextIOWrapper(f, encoding="utf-8", write_through=False)
+    for piece in json.JSONEncoder(indent=1, allow_nan=False).iterencode(report):
+        text.write(piece)
+    text.write("\n")
+    text.flush()
+    text.detach()
 
 
 def queue_rows(report: dict) -> list:
