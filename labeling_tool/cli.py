@@ -125,18 +125,24 @@ def build_queue(target: str, queue: str):
     shard_only = None
     if path.suffix == ".tar":
         shard_only, path = path.stem, path.parent
-    items = [QueueItem(s, sh["name"]) for sh in Dataset(path).shards for s in sh["subjects"]
+    dataset = Dataset(path)
+    items = [QueueItem(s, sh["name"]) for sh in dataset.shards for s in sh["subjects"]
              if shard_only is None or sh["name"] == shard_only]
     if shard_only is not None and not items:
         raise UserError(f"{target}: not a shard of the dataset in {path}")
-    from datagen.dataset.preflags import read_review_queue
+    from datagen.dataset.preflags import read_queue
 
-    rows = read_review_queue(path)
-    if rows is None:
+    preflags = read_queue(path)
+    stale = preflags is not None and preflags[0] != dataset.index_sha256
+    if preflags is None or stale:
+        why = "were made for another index.json: run 'label-tool auto {0}' again" if stale else \
+            "are missing: run 'label-tool auto {0}' first"
         if queue != "all":
-            raise UserError(f"--queue {queue} needs pre-flags: run 'label-tool auto {path}' first")
+            raise UserError(f"--queue {queue} needs pre-flags; those of {path} " + why.format(path))
+        if stale:
+            print(f"note: pre-flags not shown; those of {path} " + why.format(path))
         return path, items
-    scores = {r[0]: r for r in rows}
+    scores = {r[0]: r for r in preflags[1]}
     for it in items:
         r = scores.get(it.subject)
         if r:

@@ -12,7 +12,7 @@ from pathlib import Path
 from datagen.errors import SettingError, UserError
 from datagen.files import atomic_write
 from datagen.dataset.manifests import FORMAT, read_manifest
-from datagen.dataset.preflags import read_flagged
+from datagen.dataset.preflags import read_queue
 from datagen.dataset import Dataset
 from datagen.dataset.shards import dumps
 
@@ -137,18 +137,19 @@ def shard_problems(dataset: Dataset) -> dict[str, str]:
 def flagged_subjects(dataset: Dataset, required: bool) -> set[str] | None:
     """Subjects the dataset's pre-flags (``label-tool auto``) flag; None when there are none or they are
     stale (made for another index.json), or a UserError when ``required``."""
-    try:
-        made_for, flagged = read_flagged(dataset.root)
-    except UserError as e:
+    queue = read_queue(dataset.root)
+    if queue is None:
         if required:
-            raise SettingError(f"{{unreviewed}} reject-flagged needs pre-flags: {e}") from None
+            raise SettingError(f"{{unreviewed}} reject-flagged needs pre-flags: {dataset.root} has none (run "
+                               f"'label-tool auto {dataset.root}' first)")
         return None
+    made_for, rows = queue
     if made_for != dataset.index_sha256:
         if required:
             raise SettingError(f"{{unreviewed}} reject-flagged: the pre-flags of {dataset.root} were made for another "
                                f"index.json; run 'label-tool auto {dataset.root}' again")
         return None
-    return flagged
+    return {row[0] for row in rows if row[3]}
 
 
 VERSION_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")

@@ -524,6 +524,17 @@ def test_a_failed_write_leaves_the_session_where_it_was(app_factory, tmp_path, m
                                                      ("subj00000001", "bad", ("broken_back",))]
 
 
+def test_review_queue_refuses_or_hides_pre_flags_of_another_index(tiny_dataset, tmp_path, capsys):
+    root = with_preflags(tiny_dataset, tmp_path, flagged={"subj00000001"}, stale=True)
+    with pytest.raises(UserError, match="--queue worst needs pre-flags; those of .* were made for another index.json"):
+        build_queue(str(root), "worst")
+    _, items = build_queue(str(root), "all")
+    assert [it.flags for it in items] == [(), (), ()] and "note: pre-flags not shown" in capsys.readouterr().out
+    current = with_preflags(tiny_dataset, tmp_path / "current", flagged={"subj00000001"})
+    _, items = build_queue(str(current), "worst")
+    assert items[0].subject == "subj00000001" and items[0].flags == (("janus", 0.9),)
+
+
 def test_compile_reads_the_flags_from_the_queue_file_while_it_is_current(tiny_dataset, tmp_path, monkeypatch):
     import datagen.dataset.preflags as report_format
 

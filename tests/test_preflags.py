@@ -950,16 +950,16 @@ def test_the_review_queue_file_is_the_reports_and_only_while_the_report_is_uncha
     report_format.write_preflags(root, report)
     rows = json.loads((root / "preflags-queue.json").read_text())["subjects"]
     assert rows == json.loads(json.dumps(report_format.queue_rows(report)))
-    assert report_format.read_review_queue(root) == rows and rows[0][2] == 0.123
+    assert report_format.read_queue(root) == (report["dataset_index_sha256"], rows) and rows[0][2] == 0.123
     flagged = next(r for r in report["subjects"] if len(r["flags"]) >= 1)
     row = next(r for r in rows if r[0] == flagged["subject"])
     assert [k for k, _ in row[3]] == sorted(flagged["flags"], key=lambda k: -flagged["detectors"][k]["score"])
     # The report rewritten without its queue (another writer): the queue is not used, the report is read.
     changed = dict(report, subjects=report["subjects"][1:])
     report_format.write_preflags(root, changed, path=root / "preflags.json")
-    assert report_format.read_review_queue(root) == json.loads(json.dumps(report_format.queue_rows(changed)))
+    assert report_format.read_queue(root)[1] == json.loads(json.dumps(report_format.queue_rows(changed)))
     (root / "preflags.json").unlink()
-    assert report_format.read_review_queue(root) is None
+    assert report_format.read_queue(root) is None
 
 
 def test_procedural_dataset_end_to_end(tmp_path):

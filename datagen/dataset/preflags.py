@@ -28,8 +28,8 @@ queue needs from it, small enough to open at once with 165K subjects (the report
      "subjects": [[subject, score, rank, [[detector, score], ...flags, highest first]], ...]}
 
 ``report`` is the stat of the ``preflags.json`` it was made from: a queue whose report has changed since
-is not used (the report itself is read). ``label-tool compile`` reads which subjects are flagged from it
-too (:func:`read_flagged`), so neither needs the whole report.
+is not used (the report itself is read). The review window and ``label-tool compile`` read it
+(:func:`read_queue`), so neither needs the whole report.
 """
 from __future__ import annotations
 
@@ -95,23 +95,17 @@ def _current_queue(root) -> dict | None:
     return None
 
 
-def read_review_queue(root) -> list | None:
-    """The review queue's rows (:func:`queue_rows`) of the dataset at ``root``: from its queue file when that
-    was made from the ``preflags.json`` there now, else from the report; None without a report."""
+def read_queue(root) -> tuple[str | None, list] | None:
+    """(the index sha256 the pre-flags of the dataset at ``root`` were made for, the review queue's rows
+    (:func:`queue_rows`)): from its queue file when that was made from the ``preflags.json`` there now,
+    else from the report; None without a report."""
     if not (Path(root) / PREFLAGS_NAME).exists():
         return None
     queue = _current_queue(root)
-    return queue["subjects"] if queue is not None else queue_rows(read_preflags(root))
-
-
-def read_flagged(root) -> tuple[str | None, set[str]]:
-    """(the index sha256 the dataset's pre-flags were made for, the subjects they flag), from the queue file
-    when it is current and says the first, else from ``preflags.json``; a DatasetError without a report."""
-    queue = _current_queue(root)
     if queue is not None and "dataset_index_sha256" in queue:
-        return queue["dataset_index_sha256"], {row[0] for row in queue["subjects"] if row[3]}
+        return queue["dataset_index_sha256"], queue["subjects"]
     report = read_preflags(root)
-    return report.get("dataset_index_sha256"), {r["subject"] for r in report["subjects"] if r["flags"]}
+    return report.get("dataset_index_sha256"), queue_rows(report)
 
 
 def read_preflags(root, path=None) -> dict:
