@@ -1,7 +1,6 @@
 """The ``datagen`` command line: sample, verify, preview, export, shape, info."""
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 
@@ -11,18 +10,8 @@ from .threads import add_option as add_threads_option
 from .text import byte_size, plural, readable
 from .generators.settings import GANConfig, ProceduralConfig
 from .dataset import Dataset
-from .job import JobSpec
+from .job import JobSpec, SampleOptions
 from .verify import VerifyOptions
-
-
-def parse_workers(text: str):
-    """'auto' or a whole number (checked by the pipeline)."""
-    if text == "auto":
-        return text
-    try:
-        return int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be auto or a number, not {text!r}") from None
 
 
 def build_parser() -> OneLineParser:
@@ -31,24 +20,12 @@ def build_parser() -> OneLineParser:
 
     s = sub.add_parser("sample", help="render subjects into WebDataset shards")
     add_options(s, JobSpec)
-    s.add_argument("--workers", type=parse_workers, default=1, metavar="auto|N",
-                   help="worker processes on this machine: N, or auto = one per GPU on CUDA (one with --device "
-                        "cuda:N), else one per CPU core up to this job's shard count. On CUDA worker k renders on "
-                        "cuda:(k mod the GPU count), so more workers than GPUs share them; --device cuda:N puts all "
-                        "on GPU N. With --backend ray, each task gets the CPU cores divided by N")
-    s.add_argument("--backend", default="local", choices=("local", "ray"), help="run shard tasks here or on Ray")
+    add_options(s, SampleOptions, only=("workers", "backend"))
     add_threads_option(s, "each worker process (or Ray task)")
-    s.add_argument("--gpus-per-task", type=float, default=None, metavar="G",
-                   help="--backend ray with CUDA: the share of one GPU each shard task asks Ray for, in (0, 1]; "
-                        "0.5 runs two tasks per GPU (default 1). Each task renders on the GPU Ray gives it")
-    s.add_argument("--ray-address", help="address of an existing Ray cluster (default: RAY_ADDRESS or a local one)")
-    s.add_argument("--shard-index", type=int, default=0, help="this job's part K of --num-shards (array jobs)")
-    s.add_argument("--num-shards", type=int, default=1, help="split the shards over N jobs; job K writes shards s with s %% N == K")
-    s.add_argument("--resume", action="store_true", help="skip complete shards, redo partial ones")
+    add_options(s, SampleOptions)
     add_options(s, ProceduralConfig, only=("background",))
     add_options(s, ProceduralConfig, help_prefix="procedural: ")
     add_options(s, GANConfig, help_prefix="GANs: ")
-    s.add_argument("--quiet", action="store_true", help="no progress bar")
 
     v = sub.add_parser("verify", help="check checksums, decoding, counts and metadata of a dataset")
     v.add_argument("dataset", help="dataset folder (datagen sample --out)")
@@ -111,11 +88,12 @@ def _sample(args) -> int:
     from .pipeline import run_sample, software_info
 
     spec = JobSpec(**given(args, JobSpec), generator_options=generator_options(args), software=software_info())
-    summary = run_sample(spec, workers=args.workers, backend=args.backend, ray_address=args.ray_address,
-                         gpus_per_task=args.gpus_per_task, shard_index=args.shard_index, num_shards=args.num_shards,
-                         resume=args.resume, progress=not args.quiet, threads=args.threads)
+    opts = SampleOptions(**given(args, SampleOptions))
+    summary = run_sample(spec, workers=opts.workers, backend=opts.backend, ray_address=opts.ray_address,
+                         gpus_per_task=opts.gpus_per_task, shard_index=opts.shard_index, num_shards=opts.num_shards,
+                         resume=opts.resume, progress=not opts.quiet, threads=args.threads)
     if not summary["shards_written"] and summary["shards_skipped"]:
-        part = "this job's " if args.num_shards > 1 else ""
+        part = "this job's " if opts.num_shards > 1 else ""
         print(f"{args.out}: complete ({part}{summary['shards_skipped']} of {plural(spec.num_shard_files, 'shard')}, "
               f"{plural(summary['subjects'], 'subject')}); nothing to do")
         return 0

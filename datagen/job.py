@@ -4,6 +4,7 @@ settings by field (:class:`datagen.errors.SettingError`). Imports no torch.
 """
 from __future__ import annotations
 
+import argparse
 import math
 from dataclasses import asdict, dataclass, field
 
@@ -12,6 +13,7 @@ from .command_line import setting
 from .errors import SettingError
 from .generators import AVAILABLE, GANS
 from .generators.settings import NOT_RECORDED
+from .runner import ArrayJobOptions
 from .shapes import check_resolution
 
 
@@ -77,3 +79,29 @@ class JobSpec:
             del s["save_shape"], s["shape_level"]
         s["generator_options"] = {k: v for k, v in s["generator_options"].items() if k not in NOT_RECORDED}
         return s
+
+
+def parse_workers(text: str):
+    """'auto' or a whole number (checked by the pipeline)."""
+    if text == "auto":
+        return text
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be auto or a number, not {text!r}") from None
+
+
+@dataclass(frozen=True)
+class SampleOptions(ArrayJobOptions):
+    """Where ``datagen sample`` renders a job (none of it changes the dataset's bytes)."""
+
+    workers: int | str = setting(1, "worker processes on this machine: N, or auto = one per GPU on CUDA (one with "
+                                    "--device cuda:N), else one per CPU core up to this job's shard count. On CUDA "
+                                    "worker k renders on cuda:(k mod the GPU count), so more workers than GPUs share "
+                                    "them; --device cuda:N puts all on GPU N. With --backend ray, each task gets the "
+                                    "CPU cores divided by N", parse=parse_workers, metavar="auto|N")
+    gpus_per_task: float | None = setting(None, "--backend ray with CUDA: the share of one GPU each shard task asks "
+                                                "Ray for, in (0, 1]; 0.5 runs two tasks per GPU (default 1). Each task "
+                                                "renders on the GPU Ray gives it", parse=float, metavar="G")
+    resume: bool = setting(False, "skip complete shards, redo partial ones")
+    quiet: bool = setting(False, "no progress bar")

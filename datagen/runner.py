@@ -73,6 +73,15 @@ class RunOptions:
                          self.ray_address)
 
 
+@dataclass(frozen=True)
+class ArrayJobOptions(RunOptions):
+    """:class:`RunOptions` and the array-job split of a command that runs over a dataset's shards."""
+
+    shard_index: int = setting(0, "array jobs: this job's part K of --num-shards", parse=at_least(0), metavar="K")
+    num_shards: int = setting(1, "array jobs: split the shards over N jobs; job K takes the shards s with s %% N == K",
+                              parse=at_least(1), metavar="N")
+
+
 def run_tasks(task: Callable, job, items: list, units: list[int], placement: Placement, bar,
               describe: Callable[[object], str] = str) -> Iterator[tuple[int, object]]:
     """(position in ``items``, result) of each task as it finishes. ``units``: the progress each item

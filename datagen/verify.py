@@ -6,10 +6,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .command_line import at_least, progress_bar, setting
+from .command_line import progress_bar, setting
 from .errors import DatasetError
 from .files import sha256_file
-from .runner import Placement, RunOptions, run_tasks
+from .runner import ArrayJobOptions, Placement, run_tasks
 from .shapes import check_mesh
 from .dataset import Dataset
 from .dataset.shards import (SHAPE_FIELD, TRUTH_DIR, decode_sample, iter_tar_samples, read_range,
@@ -143,12 +143,9 @@ def check_byte_ranges(root, i: int, side: dict, digests: dict) -> list[str]:
 
 
 @dataclass(frozen=True)
-class VerifyOptions(RunOptions):
+class VerifyOptions(ArrayJobOptions):
     """The options of ``datagen verify``."""
 
-    shard_index: int = setting(0, "array jobs: verify only the shards s with s %% N == K", parse=at_least(0),
-                               metavar="K")
-    num_shards: int = setting(1, "array jobs: how many parts (with --shard-index)", parse=at_least(1), metavar="N")
     quiet: bool = setting(False, "no progress bar")
 
 
