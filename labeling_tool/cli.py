@@ -146,7 +146,7 @@ def build_queue(target: str, queue: str):
     for it in items:
         r = scores.get(it.subject)
         if r:
-            it.score, it.flags = r[1], tuple(map(tuple, r[3])) if r[3] else ()
+            it.score, it.flags = r[1], r[3]
     if queue in ("worst", "suspicious"):
         items.sort(key=lambda it: -scores[it.subject][2] if it.subject in scores else 0.0)
     if queue == "suspicious":

@@ -529,10 +529,10 @@ def test_review_queue_refuses_or_hides_pre_flags_of_another_index(tiny_dataset, 
     with pytest.raises(UserError, match="--queue worst needs pre-flags; those of .* were made for another index.json"):
         build_queue(str(root), "worst")
     _, items = build_queue(str(root), "all")
-    assert [it.flags for it in items] == [(), (), ()] and "note: pre-flags not shown" in capsys.readouterr().out
+    assert [it.flag_pairs for it in items] == [(), (), ()] and "note: pre-flags not shown" in capsys.readouterr().out
     current = with_preflags(tiny_dataset, tmp_path / "current", flagged={"subj00000001"})
     _, items = build_queue(str(current), "worst")
-    assert items[0].subject == "subj00000001" and items[0].flags == (("janus", 0.9),)
+    assert items[0].subject == "subj00000001" and items[0].flag_pairs == (("janus", 0.9),)
 
 
 def test_compile_reads_the_flags_from_the_queue_file_while_it_is_current(tiny_dataset, tmp_path, monkeypatch):

@@ -953,7 +953,8 @@ def test_the_review_queue_file_is_the_reports_and_only_while_the_report_is_uncha
     assert report_format.read_queue(root) == (report["dataset_index_sha256"], rows) and rows[0][2] == 0.123
     flagged = next(r for r in report["subjects"] if len(r["flags"]) >= 1)
     row = next(r for r in rows if r[0] == flagged["subject"])
-    assert [k for k, _ in row[3]] == sorted(flagged["flags"], key=lambda k: -flagged["detectors"][k]["score"])
+    assert report_format.parse_flags(row[3]) == tuple(sorted(((k, flagged["detectors"][k]["score"]) for k in flagged["flags"]),
+                                                             key=lambda f: -f[1]))  # exact scores, strongest first
     # The report rewritten without its queue (another writer): the queue is not used, the report is read.
     changed = dict(report, subjects=report["subjects"][1:])
     report_format.write_preflags(root, changed, path=root / "preflags.json")

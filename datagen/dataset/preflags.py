@@ -24,8 +24,8 @@ the quantiles its null fit spans, the fewest subjects a fit needs and its rounds
 ``<dataset>/preflags-queue.json``, written after each report of the dataset, is what the review window's
 queue needs from it, small enough to open at once with 165K subjects (the report is ~2 KB a subject)::
 
-    {"format": "panolam-preflags-queue/1", "report": {"bytes", "mtime_ns"}, "dataset_index_sha256",
-     "subjects": [[subject, score, rank, [[detector, score], ...flags, highest first]], ...]}
+    {"format": "panolam-preflags-queue/2", "report": {"bytes", "mtime_ns"}, "dataset_index_sha256",
+     "subjects": [[subject, score, rank, "detector:score ..." (its flags, highest first)], ...]}
 
 ``report`` is the stat of the ``preflags.json`` it was made from: a queue whose report has changed since
 is not used (the report itself is read). The review window and ``label-tool compile`` read it
@@ -42,7 +42,7 @@ from ..files import atomic_write, read_json
 from . import Dataset
 
 FORMAT = "panolam-preflags/1"
-QUEUE_FORMAT = "panolam-preflags-queue/1"
+QUEUE_FORMAT = "panolam-preflags-queue/2"
 PREFLAGS_NAME = "preflags.json"
 QUEUE_NAME = "preflags-queue.json"
 
@@ -74,11 +74,18 @@ def _dump(report: dict, f) -> None:
 
 
 def queue_rows(report: dict) -> list:
-    """[subject, score, rank, [[detector, score], ...]] per subject of a report: its flags, highest first;
-    rank orders the worst-first queue (the learned rank where there is one, else the score)."""
+    """[subject, score, rank, flags] per subject of a report: flags as text, "detector:score ...", highest
+    first ("" for none; :func:`parse_flags` reads it); rank orders the worst-first queue (the learned rank
+    where there is one, else the score). Text rather than pairs: 165K subjects' flags parse 4x faster."""
     return [[r["subject"], r["score"], r.get("rank", r["score"]),
-             sorted(([k, r["detectors"][k]["score"]] for k in r["flags"]), key=lambda f: -f[1])]
+             " ".join(f"{k}:{v!r}" for k, v in sorted(((k, r["detectors"][k]["score"]) for k in r["flags"]),
+                                                      key=lambda f: -f[1]))]
             for r in report["subjects"]]
+
+
+def parse_flags(text: str) -> tuple:
+    """((detector, score), ...) of a queue row's flags (:func:`queue_rows`)."""
+    return tuple((name, float(score)) for name, _, score in (part.rpartition(":") for part in text.split()))
 
 
 def _current_queue(root) -> dict | None:

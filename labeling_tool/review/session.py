@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from datagen.defects import DEFECT_CLASSES, REASON_LABELS
 from datagen.errors import UserError
 from datagen.dataset.events import DECISIONS, EventLog, is_decision
+from datagen.dataset.preflags import parse_flags
 
 REASON_SHORT = REASON_LABELS
 # the reason a triage click or space gives a cell, from its strongest pre-flag (labeling_tool.preflags)
@@ -34,15 +35,21 @@ class QueueItem:
     subject: str
     shard: str
     score: float | None = None
-    flags: tuple = ()  # ((detector, score), ...) of the detectors that flag the subject, strongest first
+    flags: tuple | str = ()  # the detectors that flag the subject, strongest first: ((detector, score), ...),
+    #                          or the queue file's text of them, read when shown (165K subjects open faster)
+
+    @property
+    def flag_pairs(self) -> tuple:
+        """((detector, score), ...) of :attr:`flags`."""
+        return parse_flags(self.flags) if isinstance(self.flags, str) else self.flags
 
     @property
     def default_reason(self) -> str:
         """The reason a triage flip gives this subject: its strongest pre-flag's."""
-        return FLAG_REASON.get(self.flags[0][0], DEFAULT_REASON) if self.flags else DEFAULT_REASON
+        return FLAG_REASON.get(self.flag_pairs[0][0], DEFAULT_REASON) if self.flags else DEFAULT_REASON
 
     def flags_text(self) -> str:
-        return ", ".join(f"{name} {score:.2f}" for name, score in self.flags)
+        return ", ".join(f"{name} {score:.2f}" for name, score in self.flag_pairs)
 
 
 def verdict_text(action: str | None, reasons=()) -> str:
