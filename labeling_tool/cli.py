@@ -126,9 +126,8 @@ def build_queue(target: str, queue: str):
     if path.suffix == ".tar":
         shard_only, path = path.stem, path.parent
     dataset = Dataset(path)
-    items = [QueueItem(s, sh["name"]) for sh in dataset.shards for s in sh["subjects"]
-             if shard_only is None or sh["name"] == shard_only]
-    if shard_only is not None and not items:
+    shards = [sh for sh in dataset.shards if shard_only is None or sh["name"] == shard_only]
+    if shard_only is not None and not shards:
         raise UserError(f"{target}: not a shard of the dataset in {path}")
     from datagen.dataset.preflags import read_queue
 
@@ -141,12 +140,11 @@ def build_queue(target: str, queue: str):
             raise UserError(f"--queue {queue} needs pre-flags; those of {path} " + why.format(path))
         if stale:
             print(f"note: pre-flags not shown; those of {path} " + why.format(path))
-        return path, items
+        return path, [QueueItem(s, sh["name"]) for sh in shards for s in sh["subjects"]]
     scores = {r[0]: r for r in preflags[1]}
-    for it in items:
-        r = scores.get(it.subject)
-        if r:
-            it.score, it.flags = r[1], r[3]
+    none = (None, None, None, ())
+    items = [QueueItem(s, sh["name"], r[1], r[3]) for sh in shards for s in sh["subjects"]
+             for r in (scores.get(s, none),)]
     if queue in ("worst", "suspicious"):
         items.sort(key=lambda it: -scores[it.subject][2] if it.subject in scores else 0.0)
     if queue == "suspicious":
