@@ -16,6 +16,7 @@ import argparse
 import dataclasses
 import difflib
 import math
+import os
 import sys
 
 from .errors import SettingError, UserError, os_error_line
@@ -84,12 +85,35 @@ def run_command(prog: str, commands: dict, args, interrupted: str, parser: OneLi
     except KeyboardInterrupt:
         print(f"{prog} {args.command}: interrupted; {interrupted}", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        if not _stdout_closed():
+            raise
+        return 141  # what a shell reports for a command its reader stopped reading (SIGPIPE)
     except OSError as e:
         line = os_error_line(e)
         if line is None:
             raise
         print(f"{prog} {args.command}: error: {line}", file=sys.stderr)
         return 2
+
+
+def _stdout_closed() -> bool:
+    """Whether standard output's reader has gone (``datagen info | head -3``); then it is pointed at
+    /dev/null, so that the interpreter's last flush does not fail on it again."""
+    import select
+
+    try:
+        fd = sys.stdout.fileno()
+        poll = select.poll()
+        poll.register(fd, select.POLLOUT)
+        gone = any(events & select.POLLERR for _, events in poll.poll(0))
+    except (AttributeError, OSError, ValueError):  # no file descriptor, or no poll on this system
+        return False
+    if gone:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, fd)
+        os.close(devnull)
+    return gone
 
 
 def setting(default, help: str, *, parse=None, flag: str | None = None, nargs=None, choices=None,

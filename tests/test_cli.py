@@ -240,3 +240,12 @@ def test_generator_settings_given_on_the_command_line_reach_the_generator(monkey
     assert (spec.subjects, spec.resolution) == (3, 128)
     assert spec.generator_options == {"defect_types": ("janus", "haze"), "defect_severity": (0.2, 0.5),
                                       "background": (0.5, 0.5, 0.5)}
+
+
+def test_a_reader_that_stops_reading_gets_no_traceback(tiny_dataset):
+    """``datagen verify DIR | head -0``: the output has nowhere to go; the command ends as SIGPIPE would."""
+    proc = subprocess.Popen([sys.executable, "-m", "datagen.cli", "verify", str(tiny_dataset), "--quiet"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()  # the reader is gone before the command writes its verdict
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 141 and "Traceback" not in err, err
