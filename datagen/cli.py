@@ -132,11 +132,11 @@ def _preview(args) -> int:
 
 
 def _export(args) -> int:
-    from .export import check_subjects, complete_subjects, export_subject
+    from .export import check_subjects, export_subject
     from .preview import parse_subject
 
     dataset = Dataset(args.dataset)
-    subjects = [parse_subject(s) for s in args.subject] if args.subject else complete_subjects(dataset)
+    subjects = [parse_subject(s) for s in args.subject] if args.subject else dataset.complete_subjects
     subjects = check_subjects(dataset, subjects)  # every one, before anything is written
     if not subjects:
         raise UserError(f"{args.dataset}: no complete shards to export (see datagen verify)")

@@ -258,12 +258,6 @@ EXPORTERS = {"nerfstudio": export_nerfstudio, "instant-ngp": export_instant_ngp,
 # ----------------------------------------------------------------------------------------------
 # Datasets
 
-def complete_subjects(dataset: Dataset) -> list[str]:
-    """Subject ids of the dataset's complete shards, in index order."""
-    complete = set(dataset.complete_shards())
-    return [s for s in dataset.subjects if dataset.shard_of[s] in complete]
-
-
 def check_subjects(dataset: Dataset, keys) -> list[str]:
     """``keys`` without repeats, once every one is known to be readable: in the dataset's index, in a
     complete shard (its sidecar, and its tar at the recorded size) that records the subject's byte

@@ -94,7 +94,6 @@ def write_contact_sheet(root, subject: str, out, columns: int = 8, with_mask_dep
 def dataset_info(dataset) -> dict:
     dataset = Dataset.of(dataset)
     root, index, shards = dataset.root, dataset.index, dataset.shards
-    complete = set(dataset.complete_shards())
     size = sum(p.stat().st_size for p in root.glob("shard-*.tar"))
     s = index["settings"]
     return {
@@ -104,9 +103,9 @@ def dataset_info(dataset) -> dict:
         "resolution": s["resolution"],
         "views_per_subject": index["views_per_subject"],
         "subjects": index["num_subjects"],
-        "subjects_complete": sum(len(x["subjects"]) for n, x in zip(dataset.shard_numbers, shards) if n in complete),
+        "subjects_complete": len(dataset.complete_subjects),
         "shards": len(shards),
-        "shards_complete": len(complete),
+        "shards_complete": len(dataset.complete_shards),
         "seed": s["seed"],
         "bytes": size,
         "software": s.get("software", {}),

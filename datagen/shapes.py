@@ -278,8 +278,7 @@ def shapes_summary(dataset: Dataset) -> dict | str:
     settings = dataset.index["settings"]
     if not settings.get("save_shape"):
         return "none"
-    complete = set(dataset.complete_shards())
-    done = sum(len(s["subjects"]) for n, s in zip(dataset.shard_numbers, dataset.shards) if n in complete)
+    done = len(dataset.complete_subjects)
     level = settings.get("shape_level")
     return {"resolution": settings["save_shape"], "level": default_level(settings["gan"]) if level is None else level,
             "subjects": done, "stored": f"{SHAPE_FIELD} in each subject's record"}

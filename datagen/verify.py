@@ -161,7 +161,8 @@ def verify_dataset(dataset, progress: bool = False, placement: Placement = Place
     dataset = Dataset.of(dataset)
     root, index = dataset.root, dataset.index
     job = (root, index["views_per_subject"], index["settings"]["resolution"], index["settings"].get("save_shape", 0))
-    listed = [sh for n, sh in zip(dataset.shard_numbers, dataset.shards) if shards is None or n in shards]
+    wanted = None if shards is None else set(shards)
+    listed = [sh for n, sh in zip(dataset.shard_numbers, dataset.shards) if wanted is None or n in wanted]
     found = [None] * len(listed)
     bar = progress_bar(len(listed), "shard", "verifying", progress)
     try:

@@ -142,9 +142,11 @@ def build_queue(target: str, queue: str):
             print(f"note: pre-flags not shown; those of {path} " + why.format(path))
         return path, [QueueItem(s, sh["name"]) for sh in shards for s in sh["subjects"]]
     scores = {r[0]: r for r in preflags[1]}
-    none = (None, None, None, ())
-    items = [QueueItem(s, sh["name"], r[1], r[3]) for sh in shards for s in sh["subjects"]
-             for r in (scores.get(s, none),)]
+    items = []
+    for sh in shards:
+        for s in sh["subjects"]:
+            r = scores.get(s)
+            items.append(QueueItem(s, sh["name"]) if r is None else QueueItem(s, sh["name"], r[1], r[3]))
     if queue in ("worst", "suspicious"):
         items.sort(key=lambda it: -scores[it.subject][2] if it.subject in scores else 0.0)
     if queue == "suspicious":

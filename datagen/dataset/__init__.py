@@ -71,9 +71,16 @@ class Dataset:
         except KeyError:
             raise DatasetError(f"{self.index_path}: no subject {key} in this dataset") from None
 
+    @cached_property
     def complete_shards(self) -> list[int]:
-        """The numbers of the index's shards whose sidecar and tar are in place, in order."""
+        """The numbers of the index's shards whose sidecar and tar are in place (when first asked), in order."""
         return [n for n in self.shard_numbers if is_complete(self.root, n)]
+
+    @cached_property
+    def complete_subjects(self) -> list[str]:
+        """The subject ids of :attr:`complete_shards`, in index order."""
+        complete = set(self.complete_shards)
+        return [key for n, sh in zip(self.shard_numbers, self.shards) if n in complete for key in sh["subjects"]]
 
     def check_shards(self, shards=None) -> dict[int, str]:
         """:func:`shards.check_shards` on the shards numbered ``shards`` (all of the index's when None)."""

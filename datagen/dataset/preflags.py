@@ -12,7 +12,8 @@
 
 Subjects are sorted worst first; ``score`` is the largest detector score, ``flags`` the detectors
 whose score is at least their threshold. ``dataset_index_sha256`` ties the report to the dataset it
-scored (:func:`is_stale`). ``labeling_tool.preflags`` computes the reports.
+scored (the review window and ``label-tool compile`` refuse or hide a report made for another index.json).
+``labeling_tool.preflags`` computes the reports.
 
 Each detector's ``threshold`` is the score that flags (0.5); ``measure_threshold`` its own threshold on
 what it measures; ``calibrated_cut`` the cut this dataset's calibration set, in units of that
@@ -39,7 +40,6 @@ from pathlib import Path
 
 from ..errors import DatasetError
 from ..files import atomic_write, read_json
-from . import Dataset
 
 FORMAT = "panolam-preflags/1"
 QUEUE_FORMAT = "panolam-preflags-queue/2"
@@ -121,8 +121,3 @@ def read_preflags(root, path=None) -> dict:
     if not path.exists():
         raise DatasetError(f"{path}: no pre-flags here (run 'label-tool auto' first)")
     return read_json(path, "pre-flags report", FORMAT)
-
-
-def is_stale(dataset, report: dict) -> bool:
-    """True when the dataset's (a :class:`Dataset` or its folder) index.json changed since the report was made."""
-    return Dataset.of(dataset).index_sha256 != report.get("dataset_index_sha256")
