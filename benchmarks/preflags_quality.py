@@ -102,9 +102,10 @@ SETTINGS_EVIDENCE = (
      "(192 px) finds 70 % of the faces (with HOG 86 %) in 0.14 s a subject; 2.5x finds 80 % (with HOG also 86 %) "
      "in 0.42 s; the back-diagonal views, for 3x the time, add nothing to the union with HOG; no detection "
      "without a janus at any size"),
-    ("janus", "the CNN only where `face_like`", "seeds 4 (48 subjects, 31 of them janus) and 41 (32 subjects, 3 "
-     "janus): HOG or the eye cascade saw something face-like on all 34 janus backs, among them the 23 the CNN found, and "
-     "on 6 of the 46 others, where the CNN found nothing"),
+    ("janus", "the CNN only where `face_like`: `cnn_gate_face` -0.6 (HOG), `cnn_gate_eyes` 2", "seeds 4 (48 subjects, "
+     "31 of them janus) and 41 (32 subjects, 3 janus): the 23 faces the CNN found all pass (HOG -0.57 the lowest "
+     "without an eye pair); the 6 clean backs where any HOG response or eye detection (the gate before) opened it, "
+     "HOG -0.92 to -0.64 from hair, do not"),
     ("janus", "`EYE_VIEW_PX` 256, `eyes` 2", "seed 4 (84 janus, 80 of them injected) and seeds 0, 1, 5, 6 (476 "
      "other subjects): a pair with at least 2 raw detections per eye on 74 janus backs and on 5 others (light "
      "textured hair, up to 9 detections), which the skin test removes"),
@@ -156,12 +157,15 @@ def fresh_seeds(count: int) -> list[int]:
     return seeds
 
 
-def generate(out: Path, seed: int, rate: float, subjects: int, resolution: int, workers: int) -> float:
-    """Make (or finish) a procedural 360 dataset; returns the seconds spent (0 when it was complete)."""
+def generate(out: Path, seed: int, rate: float, subjects: int, resolution: int, workers: int,
+             defect_types: list[str] | None = None) -> float:
+    """Make (or finish) a procedural 360 dataset (``defect_types``: the classes injected, default all);
+    returns the seconds spent (0 when it was complete)."""
     from datagen.pipeline import JobSpec, run_sample, software_info
 
     t0 = time.perf_counter()
-    spec = JobSpec(out=str(out), gan="procedural", generator_options={"defect_rate": rate}, protocol="360",
+    options = {"defect_rate": rate} | ({"defect_types": defect_types} if defect_types else {})
+    spec = JobSpec(out=str(out), gan="procedural", generator_options=options, protocol="360",
                    subjects=subjects, resolution=resolution, views=32, seed=seed, shard_size=16,
                    software=software_info())
     summary = run_sample(spec, progress=False, workers=workers, resume=True)

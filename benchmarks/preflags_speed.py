@@ -15,6 +15,8 @@ janus runs dlib's CNN face detector only where HOG or the eye cascade sees somet
 is also run (timed apart, then taken out of the figures) on every other back view: the throughput
 with the CNN everywhere (``Janus.Settings.cnn_always``, the behaviour before) adds its CPU seconds,
 and the report scored from records with those CNN results shows whether any score or flag changes.
+The same check on a janus-rich dataset (``--janus-subjects``, seed + 1) counts the faces the CNN finds
+where the gate kept it from running.
 
     python -m benchmarks.preflags_speed --keep /tmp/pfspeed   # about 10 min on 2 cores, datasets kept
     python -m benchmarks.preflags_speed --quick                # a smoke run, about 3 minutes
@@ -44,6 +46,7 @@ REPORT = REPORTS / "preflags_speed"
 PAPER_SUBJECTS = 165_000   # 48K + 117K subjects kept in the paper's dataset
 CLUSTER_CORES = 64
 GOALS = {128: 5.0, 512: PAPER_SUBJECTS / (CLUSTER_CORES * 3600.0)}  # subjects/s/core: stated goal, 1 hour
+JANUS_RATE = 0.6  # share of the gate check's subjects given a janus
 
 
 def measure_dataset(root: Path) -> dict:
@@ -53,6 +56,7 @@ def measure_dataset(root: Path) -> dict:
     tasks, _ = plan(dataset)
     stages = {"read+decode": []} | {d.name: [] for d in DETECTORS}
     records, everywhere, cnn_cpu, cnn_wall, skipped_cpu = [], [], [], [], []
+    found = missed = 0  # back views where the CNN finds a face; of them, where the gate kept it from running
     wall0, cpu0 = time.perf_counter(), time.process_time()
     for shard, tar, key, start, end in tasks:
         t = time.process_time()
@@ -74,6 +78,8 @@ def measure_dataset(root: Path) -> dict:
             cnn_wall.append(time.perf_counter() - t)
             if janus["cnn"] is None:
                 skipped_cpu.append(cnn_cpu[-1])
+                missed += confidence > 0.0
+            found += confidence > 0.0
             janus = dict(janus, cnn=confidence)
         everywhere.append((shard, dict(record, measured=dict(measured, janus=janus))))
     wall, cpu = time.perf_counter() - wall0 - sum(cnn_wall), time.process_time() - cpu0 - sum(cnn_cpu)
@@ -93,6 +99,7 @@ def measure_dataset(root: Path) -> dict:
                          for k, v in stages.items()},
             "janus_cnn_ms": round(1000 * median(cnn_cpu), 1) if cnn_cpu else None,
             "cnn_subjects": len(cnn_cpu) - len(skipped_cpu), "back_views": len(cnn_cpu),
+            "cnn_faces": found, "cnn_faces_gate_closed": missed,
             "subjects_per_cpu_second_cnn_everywhere": round(n / (cpu + sum(skipped_cpu)), 3),
             "changed_with_cnn_everywhere": changed,
             "report_sha256": hashlib.sha256(blob).hexdigest(), "flagged": report["summary"]["flagged"]}
@@ -139,6 +146,15 @@ def write_markdown(data: dict) -> str:
                          "the eye cascade saw something face-like). Run on every back view it changes "
                          + (f"the scores or flags of {len(changed)} subjects ({', '.join(changed)})." if changed
                             else "no score and no flag (the explanations say where it was not run)."))
+    j = data.get("janus_check")
+    if j:
+        changed = j["changed_with_cnn_everywhere"]
+        lines.append(f"- The CNN's gate on a janus-rich dataset (seed {j['seed']}, {j['subjects']} subjects at 128 px, "
+                     f"{100 * j['defect_rate']:.0f} % given a janus): run on every back view the CNN finds "
+                     f"{j['cnn_faces']} faces, {j['cnn_faces_gate_closed']} of them where the gate kept it from "
+                     f"running; the gate opened on {j['cnn_subjects']} of {j['back_views']} back views. Run "
+                     "everywhere it changes " + (f"the scores or flags of {len(changed)} subjects ({', '.join(changed)})."
+                                                 if changed else "no score and no flag."))
     return "\n".join(lines) + "\n"
 
 
@@ -146,6 +162,9 @@ def main(argv=None) -> int:
     ap = benchmark_parser(__doc__, "fewer subjects (8 at 128 px, 2 at 512 px)", "rewrite the markdown from the JSON")
     ap.add_argument("--seed", type=int, default=41)
     ap.add_argument("--subjects", type=int, nargs=2, default=[32, 8], metavar=("AT_128", "AT_512"))
+    ap.add_argument("--janus-subjects", type=int, default=48,
+                    help="subjects of a janus-rich dataset at 128 px (seed + 1, 60 %% given a janus) that checks "
+                         "the CNN's gate (0: none)")
     ap.add_argument("--keep", help="folder for the datasets, reused when run again (default: a temporary folder)")
     args = ap.parse_args(argv)
     if args.report_only:
@@ -167,6 +186,12 @@ def main(argv=None) -> int:
         print(f"measuring {res} px ...", flush=True)
         data["runs"][res] = measure_dataset(root)
     data["load_after"] = load_average()
+    janus_subjects = min(args.janus_subjects, 8) if args.quick else args.janus_subjects
+    if janus_subjects:
+        root = base / f"seed{args.seed + 1}-{janus_subjects}x128-janus"
+        print(f"checking the CNN's gate on {root} ...", flush=True)
+        generate(root, args.seed + 1, JANUS_RATE, janus_subjects, 128, workers=1, defect_types=["janus"])
+        data["janus_check"] = dict(measure_dataset(root), seed=args.seed + 1, defect_rate=JANUS_RATE)
     best = data["runs"][512]["subjects_per_cpu_second"]
     data["hours_165k_on_64_cores"] = round(hours_for(PAPER_SUBJECTS, best), 3)
     write_json(REPORT.with_suffix(".json"), data)

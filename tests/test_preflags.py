@@ -673,12 +673,16 @@ def test_eye_pair_where_a_face_has_its_eyes():
 
 
 def test_cnn_runs_only_where_the_cheap_face_cues_see_something():
-    """face_like opens on any HOG response above its floor or any eye pair; a record whose CNN was not run
-    scores as one where the CNN found nothing, and its explanation says the CNN was not run."""
+    """face_like opens where HOG scores above the gate on any back view or the eye pair reaches its gate, not
+    on hair's faint HOG responses or a single eye detection; a record whose CNN was not run scores as one
+    where the CNN found nothing, and its explanation says the CNN was not run."""
     from labeling_tool.preflags.janus import NO_FACE, Janus, face_like
 
-    assert not face_like({3: NO_FACE, 4: NO_FACE, 5: NO_FACE}, 0) and not face_like({}, 0)
-    assert face_like({3: NO_FACE, 4: -0.95}, 0) and face_like({4: NO_FACE}, 1)
+    gate = Janus.Settings()
+    at = (gate.cnn_gate_face, gate.cnn_gate_eyes)
+    assert not face_like({3: NO_FACE, 4: NO_FACE, 5: NO_FACE}, 0, *at) and not face_like({}, 0, *at)
+    assert not face_like({3: NO_FACE, 4: -0.64}, 1, *at)  # a clean back's hair (tuning seed 41)
+    assert face_like({3: -0.57, 4: -0.95}, 0, *at) and face_like({4: NO_FACE}, 3, *at)  # janus (tuning seed 4)
     base = {"sim": (0.10, 0.05), "colour": (0.20, 0.05), "relief": (math.log(1e-4), 0.5)}
     record = {"back": 4, "front": 0, "sim": 0.30, "colour": 0.20, "relief": 1e-4, "faces": {4: NO_FACE}, "eyes": 0}
     skipped, empty = Janus().score(dict(record, cnn=None), base, 0, []), Janus().score(dict(record, cnn=NO_FACE), base, 0, [])
@@ -687,16 +691,21 @@ def test_cnn_runs_only_where_the_cheap_face_cues_see_something():
 
 
 def test_opencv_masks_match_scipys():
-    """fill_holes and farther_than (OpenCV's labelling and exact distance transform) give scipy's results,
-    regions touching the image's edge included; farther_than at the radii the haze detector uses (3 px at
-    64 px for 96 to 512 px) and at a radius between pixels."""
-    from labeling_tool.preflags.imaging import farther_than, fill_holes
+    """fill_holes, label and farther_than (OpenCV's labelling and exact distance transform) give scipy's
+    results (label: the same numbers in the same order, 4- and 8-connected), regions touching the image's
+    edge included; farther_than at the radii the haze detector uses (3 px at 64 px for 96 to 512 px) and
+    at a radius between pixels."""
+    from labeling_tool.preflags.imaging import farther_than, fill_holes, label
 
     rng = np.random.default_rng(3)
     for _ in range(40):
         h, w = rng.integers(8, 120, 2)
         region = ndi.gaussian_filter(rng.random((h, w)), 2.0) > 0.52
         assert np.array_equal(fill_holes(region), ndi.binary_fill_holes(region))
+        for eight, structure in ((False, None), (True, np.ones((3, 3), bool))):
+            want, n = ndi.label(region, structure=structure)
+            got, m = label(region, eight)
+            assert m == n and np.array_equal(got, want)
         if not region.any():
             continue
         candidates = rng.random((h, w)) < 0.8

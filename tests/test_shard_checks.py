@@ -9,6 +9,7 @@ import json
 import shutil
 import tarfile
 
+import numpy as np
 import pytest
 
 import datagen.dataset.shards as shards
@@ -161,3 +162,46 @@ def test_a_damaged_tar_header_is_named(tiny_dataset, tmp_path):
     bad.write_bytes(tar_path(tiny_dataset, 0).read_bytes()[:1500])  # cut inside the first member's data
     with pytest.raises(DatasetError, match="truncated"):
         shards.tar_layout(bad)
+
+
+def test_read_range_walks_plain_headers_and_falls_back_to_tarfile(tiny_dataset, tmp_path):
+    """A subject's fields read by its byte range are the bytes tarfile extracts, from the writer's plain
+    headers and from a tar with extended headers (read by tarfile); a range holding another subject
+    is refused naming the file."""
+    side = json.loads(sidecar_path(tiny_dataset, 0).read_text())
+    with tarfile.open(tar_path(tiny_dataset, 0), "r:") as tar:
+        want = {m.name.partition(".")[2]: tar.extractfile(m).read() for m in tar
+                if m.name.startswith(side["subjects"][0] + ".")}
+    start, end = side["offsets"][side["subjects"][0]]
+    assert shards.read_range(tar_path(tiny_dataset, 0), side["subjects"][0], start, end) == want
+    odd = tmp_path / "odd.tar"
+    with tarfile.open(odd, "w", format=tarfile.PAX_FORMAT) as tar:
+        for name, data in (("k" + "é" * 3 + ".json", b"{}"), ("k" + "é" * 3 + ".v00.png", b"x" * 700)):
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            tar.addfile(info, io.BytesIO(data))
+    assert shards.read_range(odd, "k" + "é" * 3, 0, odd.stat().st_size - 1024) == {"json": b"{}", "v00.png": b"x" * 700}
+    with pytest.raises(DatasetError, match=f"{tar_path(tiny_dataset, 0)}: the byte range of subjX holds"):
+        shards.read_range(tar_path(tiny_dataset, 0), "subjX", start, end)
+
+
+def test_png_decoding_gives_pillows_pixels(tmp_path):
+    """decode_png gives Pillow's pixels, shape and dtype for the grey and RGB PNGs shards hold (OpenCV
+    decodes those) and for the modes only Pillow reads here (palette, grey with alpha, 16-bit)."""
+    from PIL import Image
+
+    rng = np.random.default_rng(0)
+    images = [Image.fromarray(rng.integers(0, 256, (37, 23), dtype=np.uint8)),
+              Image.fromarray(rng.integers(0, 256, (19, 41, 3), dtype=np.uint8)),
+              Image.fromarray(rng.integers(0, 256, (19, 41, 4), dtype=np.uint8)),
+              Image.fromarray(rng.integers(0, 256, (16, 16, 3), dtype=np.uint8)).convert("P"),
+              Image.fromarray(rng.integers(0, 256, (16, 16, 2), dtype=np.uint8), mode="LA"),
+              Image.fromarray(rng.integers(0, 65535, (9, 7), dtype=np.uint16))]
+    for im in images:
+        buf = io.BytesIO()
+        im.save(buf, format="PNG")
+        with Image.open(io.BytesIO(buf.getvalue())) as ref:
+            ref.load()
+            want = np.asarray(ref)
+        got = shards.decode_png(buf.getvalue())
+        assert got.dtype == want.dtype and got.shape == want.shape and np.array_equal(got, want), im.mode

@@ -23,6 +23,7 @@ member order, mtime 0, no owner names).
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import io
 import json
@@ -110,9 +111,33 @@ def encode_exr(depth: np.ndarray) -> bytes:
 
 
 def decode_png(data: bytes) -> np.ndarray:
+    """A PNG's pixels as Pillow reads them (uint8 (h,w) grey, (h,w,3) RGB, ...). The 8-bit grey and RGB
+    PNGs the shards hold are decoded by OpenCV where it is installed (the same pixels, about 1.6x faster),
+    those within Pillow's pixel limit (``Image.MAX_IMAGE_PIXELS``, read from the header); Pillow decodes
+    everything else and refuses larger images."""
+    cv2 = _opencv()
+    if cv2 is not None and data[:8] == _PNG_SIGNATURE and data[12:16] == b"IHDR" and data[24] == 8 \
+            and data[25] in (0, 2) and int.from_bytes(data[16:20], "big") * int.from_bytes(data[20:24], "big") \
+            <= (Image.MAX_IMAGE_PIXELS or 0):
+        pixels = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        if pixels is not None:
+            return pixels if pixels.ndim == 2 else cv2.cvtColor(pixels, cv2.COLOR_BGR2RGB)
     with Image.open(io.BytesIO(data)) as im:
         im.load()
         return np.asarray(im)
+
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+@functools.lru_cache(maxsize=None)
+def _opencv():
+    """OpenCV's module where installed (the ``faces`` extra), else None."""
+    try:
+        import cv2
+    except ImportError:
+        return None
+    return cv2
 
 
 def decode_exr(data: bytes) -> np.ndarray:
@@ -365,16 +390,20 @@ def read_range(path, key: str, start: int, end: int, wanted=None) -> dict:
             blob = f.read(end - start)
         if len(blob) != end - start:
             raise DatasetError(f"{path}: the byte range of {key} [{start}, {end}) runs past the end of the tar")
+        plain = _ustar_members(blob, path)  # plain ustar headers are walked here, anything else by tarfile
+        if plain is not None:
+            members = [(name, header + BLOCK, end) for name, header, end in plain]
+        else:
+            with tarfile.open(fileobj=io.BytesIO(blob), mode="r:") as tar:
+                members = [(m.name, m.offset_data, m.offset_data + m.size) for m in tar if m.isfile()]
+        others = sorted({name.partition(".")[0] for name, _, _ in members} - {key})
+        if others or not members:
+            raise DatasetError(f"{path}: the byte range of {key} holds {others[:1] or 'no subject'}, not {key}")
         fields = {}
-        with tarfile.open(fileobj=io.BytesIO(blob), mode="r:") as tar:
-            members = [m for m in tar if m.isfile()]
-            others = sorted({m.name.partition(".")[0] for m in members} - {key})
-            if others or not members:
-                raise DatasetError(f"{path}: the byte range of {key} holds {others[:1] or 'no subject'}, not {key}")
-            for m in members:
-                name = m.name.partition(".")[2]
-                if wanted is None or wanted(name, fields):
-                    fields[name] = tar.extractfile(m).read()
+        for name, first, last in members:  # a member's name and its data's bytes in the blob
+            field = name.partition(".")[2]
+            if wanted is None or wanted(field, fields):
+                fields[field] = blob[first:last]
         return fields
     except (tarfile.TarError, EOFError, OSError) as e:
         raise DatasetError(f"{path}: corrupt subject {key} ({e})") from None

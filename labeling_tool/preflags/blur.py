@@ -13,7 +13,7 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from .detector import Detector, Flag, ramp_flag
-from .imaging import box, dilate, erode, fill_holes, nearest_fill, robust
+from .imaging import box, dilate, erode, fill_holes, label, nearest_fill, robust
 
 
 def edge_sharpness(rgb, alpha) -> float:
@@ -52,7 +52,7 @@ def alpha_edge_width(alpha) -> float:
         return float("nan")
     near = box(solid, 2)  # the outline and the Sobel filter's reach
     a = alpha[near].astype(np.float64) / 255.0
-    lab, n = ndi.label(solid[near])
+    lab, n = label(solid[near])
     body = fill_holes(lab == 1 + int(np.argmax(np.bincount(lab.ravel())[1:])))
     outline = body & ~erode(body)
     if outline.sum() < 20:

@@ -8,17 +8,17 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage as ndi
 
 from datagen.dataset.shards import view_name
 
 from .detector import Detector, Flag, ramp_flag
+from .imaging import label
 from .views import WORK_RES
 
 
 def components(mask: np.ndarray, min_px: float):
     """Detached share: area of components other than the largest (each >= min_px) over all mask area."""
-    lab, n = ndi.label(mask, structure=np.ones((3, 3), bool))
+    lab, n = label(mask, eight=True)
     if n <= 1:
         return 0.0, 0, 0
     areas = np.bincount(lab.ravel())[1:]

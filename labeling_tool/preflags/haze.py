@@ -17,7 +17,7 @@ from scipy import ndimage as ndi
 from datagen.dataset.shards import view_name
 
 from .detector import Detector, Flag, ramp_flag
-from .imaging import farther_than
+from .imaging import farther_than, label
 
 
 def _material_box(a: np.ndarray, low: float) -> np.ndarray:
@@ -64,7 +64,7 @@ class Haze(Detector):
             seen = a > st.low
             far = farther_than(solid, seen, st.distance * k)
             shares.append(float((far & (a < st.high)).sum() / solid.sum()))
-            parts, n = ndi.label(solid)
+            parts, n = label(solid)
             if n == 1:  # the body is the solid silhouette
                 material = far
             else:

@@ -17,7 +17,7 @@ from scipy import ndimage as ndi
 from datagen.dataset.shards import view_name
 
 from .detector import Detector, Flag
-from .imaging import bbox, blob_response, box, erode, fill_holes, nearest_fill, ramp, robust_tail
+from .imaging import bbox, blob_response, box, erode, fill_holes, label, nearest_fill, ramp, robust_tail
 from .views import EQUATOR_STEP, WORK_RES
 
 
@@ -87,7 +87,7 @@ class Holes(Detector):
             near = box(m, 1)  # holes lie inside the silhouette's box; outside it all is background
             m = m[near]
             holes = fill_holes(m) & ~m
-            lab, nh = ndi.label(holes)
+            lab, nh = label(holes)
             big = np.bincount(lab.ravel())[1:] if nh else np.zeros(0)
             if nh:
                 top, bot, _, _ = bbox(m)

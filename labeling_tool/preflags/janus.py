@@ -6,7 +6,8 @@ subject's size is large enough for it; dlib's MMOD CNN face detector on the head
 (yaw ~180), the view scaled to ``CNN_VIEW_PX`` wide; and OpenCV's Haar eye cascade on the back view
 (scaled to ``EYE_VIEW_PX`` wide), looking for a pair of eyes where a face would have them. The
 strongest of the three counts. The CNN, half the cost of a subject at 128 px, runs only where the
-cheaper two see something face-like (``face_like``; ``Settings.cnn_always`` runs it everywhere).
+cheaper two see something face-like (``face_like``: HOG above -0.6 or a pair of eyes;
+``Settings.cnn_always`` runs it everywhere).
 (2) The back view (yaw ~180) compared with the front view (yaw ~0, as is and mirrored) on edge
 structure and on the colour layout of the face region, and searched for a nose-like depth bump where
 the front view has its nose: the mean of the three robust z-scores against the dataset, each capped
@@ -141,12 +142,13 @@ def best_cnn_face(rgb: np.ndarray, mask: np.ndarray, view_px: int = CNN_VIEW_PX)
     return float(max((d.confidence for d in cnn_detector()(np.ascontiguousarray(img), 0)), default=NO_FACE))
 
 
-def face_like(faces: dict, eyes: int) -> bool:
-    """Whether the cheap face cues see anything on the back views, so that the CNN face detector is
-    worth running: any HOG response at all (a score above its floor ``NO_FACE``; ``faces`` {view: best
-    score}) or an eye pair (``eyes`` > 0, see ``eye_pair``). Every face the CNN found on the tuning
-    datasets was seen by one of them (benchmarks/reports/preflags_tuning.md)."""
-    return eyes > 0 or max(faces.values(), default=NO_FACE) > NO_FACE
+def face_like(faces: dict, eyes: int, face_at: float, eyes_at: int) -> bool:
+    """Whether the cheap face cues see something face-like on the back views, so that the CNN face
+    detector is worth running: a HOG score above ``face_at`` on any of them (``faces`` {view: best
+    score}) or an eye pair of at least ``eyes_at`` detections an eye (``eye_pair``). On the tuning
+    datasets every face the CNN found passed (HOG -0.57 the lowest without eyes), and clean backs whose
+    hair gave HOG -0.92 to -0.64 or a single eye detection did not (benchmarks/reports/preflags_tuning.md)."""
+    return eyes >= eyes_at or max(faces.values(), default=NO_FACE) > face_at
 
 
 def _match(image, template, mask, sh: int, method) -> np.ndarray:
@@ -253,6 +255,8 @@ class Janus(Detector):
         cnn_sat: float = 0.8    # confidence at which the score reaches 1
         eyes: int = 2           # eye-pair strength (detections per eye, skin between) at which it flags
         eyes_sat: int = 8       # strength at which the score reaches 1
+        cnn_gate_face: float = -0.6  # the CNN runs where HOG scores above this on a back view (``face_like``)
+        cnn_gate_eyes: int = 2       # ... or the eye cascade finds a pair of at least this strength
         cnn_always: bool = False  # run the CNN on every back view, not only where ``face_like`` (slower)
 
     def threshold(self):
@@ -279,7 +283,8 @@ class Janus(Detector):
         eyes = eye_pair(v.rgb[back], v.mask(back), face_colour(v.rgb[front], v.mask(front))) \
             if seen and v.rgb.get(front) is not None else 0
         cnn = NO_FACE
-        if seen and (self.settings.cnn_always or face_like(faces, eyes)):
+        t = self.settings
+        if seen and (t.cnn_always or face_like(faces, eyes, t.cnn_gate_face, t.cnn_gate_eyes)):
             cnn = best_cnn_face(v.rgb[back], v.mask(back))
         elif seen:
             cnn = None  # not run
