@@ -51,7 +51,7 @@ MIN_SUBJECTS = 20  # fewer measured subjects and a detector keeps its own thresh
 NULL_ROUNDS = 2  # fits of each null: without what others flag at their own thresholds, then at their cuts
 
 
-@dataclass
+@dataclass(slots=True)
 class Flag:
     """One detector's verdict on one subject: score in [0, 1], what it measured (``value``), why.
 

@@ -130,8 +130,8 @@ def score(extracted: dict, detectors=DETECTORS, false_alarm_rate: float | None =
                     for idx, (r, good) in enumerate(zip(records, ok))] for d in detectors}
     cuts, shares = dict.fromkeys(names, 1.0), dict.fromkeys(names)
     if false_alarm_rate:
-        def matrix(value, dtype=np.float64):  # (subjects, detectors)
-            return np.array([[value(f) for f in raw[n]] for n in names], dtype=dtype).reshape(len(names), -1).T
+        def matrix(value, dtype=np.float64):  # (subjects, detectors), no Python number kept per entry
+            return np.stack([np.fromiter(map(value, raw[n]), dtype, len(records)) for n in names], axis=1)
 
         c, t = calibrated_cuts(matrix(lambda f: np.nan if f is None else 0.0 if f.ratio is None else
                                       evidence(f.score, f.ratio)),
@@ -143,7 +143,7 @@ def score(extracted: dict, detectors=DETECTORS, false_alarm_rate: float | None =
     for idx, (shard, r) in enumerate(pairs):
         dets = {}
         for d in detectors:
-            f = raw[d.name][idx]
+            f, raw[d.name][idx] = raw[d.name][idx], None  # each Flag freed once its entry is made
             if f is None:
                 flag = {"score": 1.0, "why": f"does not decode: {r['error']}"} if d.name == "empty" else \
                     {"score": 0.0, "why": "not measured (subject does not decode)"}
