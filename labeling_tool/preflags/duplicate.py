@@ -35,15 +35,20 @@ def nearest(thumbs: list, block: int):
     valid = [i for i, t in enumerate(thumbs) if t is not None]
     if len(valid) < 2:
         return best, arg
-    x = np.stack([thumbs[i] for i in valid]).astype(np.float64)
+    x = np.empty((len(valid), thumbs[valid[0]].size))  # float64, filled in place: one copy of the thumbnails
+    for row, i in enumerate(valid):
+        x[row] = thumbs[i]
     x -= x.mean(axis=0, keepdims=True)            # remove what every head has in common
-    x -= x.mean(axis=1, keepdims=True)
-    norm = np.linalg.norm(x, axis=1, keepdims=True)
-    x = (x / np.maximum(norm, 1e-9)).astype(np.float32)
+    B = max(1, block)
+    unit = np.empty(x.shape, np.float32)
+    for i0 in range(0, len(x), B):  # row by row, so no second float64 copy exists at once
+        rows = x[i0:i0 + B]
+        rows -= rows.mean(axis=1, keepdims=True)
+        unit[i0:i0 + B] = rows / np.maximum(np.linalg.norm(rows, axis=1, keepdims=True), 1e-9)
+    x = unit
     m = len(valid)
     vb = np.full(m, -np.inf, dtype=np.float32)
     va = np.full(m, -1, dtype=np.int64)
-    B = max(1, block)
     for i0 in range(0, m, B):
         xi = x[i0:i0 + B]
         for j0 in range(i0, m, B):

@@ -108,26 +108,39 @@ def extract(dataset, placement: Placement = Placement(), progress: bool = False,
             "skipped_shards": skipped, "seconds": time.perf_counter() - t0, "tasks": len(chunks)}
 
 
+def frontal_thumbnails(extracted: dict) -> dict:
+    """{subject: its frontal thumbnail (the duplicate detector's) or None} of the records ``extracted``."""
+    return {r["key"]: (r["measured"].get("duplicate") or {}).get("thumb")
+            for _, r in extracted["records"] if "error" not in r}
+
+
 def thumbnails(extracted: dict, report: dict) -> list:
     """The frontal thumbnails (the duplicate detector's) in the report's order; None where missing."""
-    thumbs = {r["key"]: (r["measured"].get("duplicate") or {}).get("thumb")
-              for _, r in extracted["records"] if "error" not in r}
+    thumbs = frontal_thumbnails(extracted)
     return [thumbs.get(s["subject"]) for s in report["subjects"]]
 
 
-def score(extracted: dict, detectors=DETECTORS, false_alarm_rate: float | None = FALSE_ALARM_RATE) -> dict:
+def score(extracted: dict, detectors=DETECTORS, false_alarm_rate: float | None = FALSE_ALARM_RATE,
+          release: bool = False) -> dict:
     """Second step: every detector's baseline from the records, its scores, its cut calibrated on the
     dataset (``detector.calibrated_cuts``: the union flags at most ``false_alarm_rate`` of clean
-    subjects; None: each detector at its own threshold), then the report (worst first)."""
+    subjects; None: each detector at its own threshold), then the report (worst first).
+    ``release``: each detector's measurements are dropped from the records once it has scored them (the
+    records then hold their keys only; at 165K subjects a gigabyte less at once)."""
     pairs = extracted["records"]
     records = [r for _, r in pairs]
     keys = [r["key"] for r in records]
     ok = ["error" not in r for r in records]
-    bases = {d.name: d.baseline([r["measured"][d.name] if good else None for r, good in zip(records, ok)])
-             for d in detectors}
     names = [d.name for d in detectors]
-    raw = {d.name: [d.score(r["measured"][d.name], bases[d.name], idx, keys) if good else None
-                    for idx, (r, good) in enumerate(zip(records, ok))] for d in detectors}
+    raw = {}
+    for d in detectors:
+        base = d.baseline([r["measured"][d.name] if good else None for r, good in zip(records, ok)])
+        raw[d.name] = [d.score(r["measured"][d.name], base, idx, keys) if good else None
+                       for idx, (r, good) in enumerate(zip(records, ok))]
+        if release:
+            for r, good in zip(records, ok):
+                if good:
+                    del r["measured"][d.name]
     cuts, shares = dict.fromkeys(names, 1.0), dict.fromkeys(names)
     if false_alarm_rate:
         def matrix(value, dtype=np.float64):  # (subjects, detectors), no Python number kept per entry
@@ -193,10 +206,11 @@ def finish(extracted: dict, t0: float, timing: dict, detectors=DETECTORS, labels
            false_alarm_rate: float | None = FALSE_ALARM_RATE) -> dict:
     """The report from the records ``extracted`` (:func:`score` at ``false_alarm_rate``, then learning
     from ``labels``), its ``timing`` the measuring seconds, the seconds since ``t0`` (perf_counter)
-    and ``timing``."""
-    report = score(extracted, detectors, false_alarm_rate)
+    and ``timing``. The records' measurements are released as they are scored."""
+    thumbs = frontal_thumbnails(extracted) if labels is not None else None  # the records are released below
+    report = score(extracted, detectors, false_alarm_rate, release=True)
     if labels is not None:
-        learn_from(report, labels, thumbnails(extracted, report))
+        learn_from(report, labels, [thumbs.get(s["subject"]) for s in report["subjects"]])
     total = time.perf_counter() - t0
     n = report["summary"]["subjects"]
     report["timing"] = {"extract_seconds": round(extracted["seconds"], 3), "total_seconds": round(total, 3),
