@@ -180,7 +180,7 @@ def scored(root: Path, workers: int) -> tuple[dict, list]:
     seconds = time.perf_counter() - t0
     report["timing"] = {"seconds": round(seconds, 2), "subjects_per_second": round(len(report["subjects"]) / seconds, 1),
                         "workers": workers, "load_before": None}
-    return report, scoring.thumbnails(extracted, report)
+    return report, scoring.thumbnails(scoring.frontal_thumbnails(extracted), report)
 
 
 def prf(tp: int, fp: int, fn: int) -> dict:

@@ -390,17 +390,12 @@ def read_range(path, key: str, start: int, end: int, wanted=None) -> dict:
             blob = f.read(end - start)
         if len(blob) != end - start:
             raise DatasetError(f"{path}: the byte range of {key} [{start}, {end}) runs past the end of the tar")
-        plain = _ustar_members(blob, path)  # plain ustar headers are walked here, anything else by tarfile
-        if plain is not None:
-            members = [(name, header + BLOCK, end) for name, header, end in plain]
-        else:
-            with tarfile.open(fileobj=io.BytesIO(blob), mode="r:") as tar:
-                members = [(m.name, m.offset_data, m.offset_data + m.size) for m in tar if m.isfile()]
-        others = sorted({name.partition(".")[0] for name, _, _ in members} - {key})
+        members = [m for m in tar_members(blob, path) if m[4]]  # its files
+        others = sorted({name.partition(".")[0] for name, *_ in members} - {key})
         if others or not members:
             raise DatasetError(f"{path}: the byte range of {key} holds {others[:1] or 'no subject'}, not {key}")
         fields = {}
-        for name, first, last in members:  # a member's name and its data's bytes in the blob
+        for name, _, first, last, _ in members:
             field = name.partition(".")[2]
             if wanted is None or wanted(field, fields):
                 fields[field] = blob[first:last]
@@ -435,18 +430,13 @@ _CHECKS = "size+sha256+layout/1"  # what a remembered pass vouches for
 def tar_layout(path) -> list[tuple[str, int, int]]:
     """(subject, start, end) of each run of members sharing a key, in tar order, from the member
     headers alone: the byte range [start, end) a writer records, from the first member's header to the
-    end of the last member's 512-byte-padded data. Plain ustar headers (what :class:`ShardWriter`
-    writes) are walked here; a tar with other members (extended headers, links) is read with tarfile."""
+    end of the last member's 512-byte-padded data (members as :func:`tar_members` reads them)."""
     try:
-        data = Path(path).read_bytes()
-        members = _ustar_members(data, path)
-        if members is None:
-            with tarfile.open(path, "r:") as tar:
-                members = [(m.name, m.offset, m.offset_data + m.size) for m in tar]
+        members = tar_members(Path(path).read_bytes(), path)
     except (tarfile.TarError, EOFError, OSError) as e:
         raise DatasetError(f"{path}: corrupt or truncated shard ({e})") from None
     runs: list[list] = []
-    for name, start, end in members:
+    for name, start, _, end, _ in members:
         key, end = name.partition(".")[0], -(-end // BLOCK) * BLOCK
         if runs and runs[-1][0] == key:
             runs[-1][2] = end
@@ -457,6 +447,18 @@ def tar_layout(path) -> list[tuple[str, int, int]]:
 
 BLOCK = tarfile.BLOCKSIZE
 _PLAIN_FILE = (b"0", b"\0")
+
+
+def tar_members(data: bytes, path) -> list[tuple[str, int, int, int, bool]]:
+    """(name, header offset, data offset, end of data, whether a plain file) of each member of the tar
+    bytes ``data`` (a shard, or a subject's byte range of one) from ``path``. Plain ustar headers (what
+    :class:`ShardWriter` writes) are walked here; a tar with other members (extended headers, links)
+    is read with tarfile, whose errors the caller reports."""
+    plain = _ustar_members(data, path)
+    if plain is not None:
+        return [(name, header, header + BLOCK, end, True) for name, header, end in plain]
+    with tarfile.open(fileobj=io.BytesIO(data), mode="r:") as tar:
+        return [(m.name, m.offset, m.offset_data, m.offset_data + m.size, m.isfile()) for m in tar]
 
 
 def _octal(field: bytes) -> int:

@@ -41,7 +41,7 @@ def nearest(thumbs: list, block: int):
     x -= x.mean(axis=0, keepdims=True)            # remove what every head has in common
     B = max(1, block)
     unit = np.empty(x.shape, np.float32)
-    for i0 in range(0, len(x), B):  # row by row, so no second float64 copy exists at once
+    for i0 in range(0, len(x), B):  # a block of rows at a time, so no second float64 copy exists
         rows = x[i0:i0 + B]
         rows -= rows.mean(axis=1, keepdims=True)
         unit[i0:i0 + B] = rows / np.maximum(np.linalg.norm(rows, axis=1, keepdims=True), 1e-9)

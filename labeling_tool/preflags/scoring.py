@@ -114,9 +114,8 @@ def frontal_thumbnails(extracted: dict) -> dict:
             for _, r in extracted["records"] if "error" not in r}
 
 
-def thumbnails(extracted: dict, report: dict) -> list:
-    """The frontal thumbnails (the duplicate detector's) in the report's order; None where missing."""
-    thumbs = frontal_thumbnails(extracted)
+def thumbnails(thumbs: dict, report: dict) -> list:
+    """The thumbnails ``thumbs`` (:func:`frontal_thumbnails`) in the report's order; None where missing."""
     return [thumbs.get(s["subject"]) for s in report["subjects"]]
 
 
@@ -210,7 +209,7 @@ def finish(extracted: dict, t0: float, timing: dict, detectors=DETECTORS, labels
     thumbs = frontal_thumbnails(extracted) if labels is not None else None  # the records are released below
     report = score(extracted, detectors, false_alarm_rate, release=True)
     if labels is not None:
-        learn_from(report, labels, [thumbs.get(s["subject"]) for s in report["subjects"]])
+        learn_from(report, labels, thumbnails(thumbs, report))
     total = time.perf_counter() - t0
     n = report["summary"]["subjects"]
     report["timing"] = {"extract_seconds": round(extracted["seconds"], 3), "total_seconds": round(total, 3),
