@@ -59,7 +59,7 @@ def read_json(path, what: str, fmt: str | None = None) -> dict:
     JSON, not an object, or (with ``fmt``) has another ``format`` field (or a ``header.format``)."""
     path = Path(path)
     try:
-        doc = json.loads(path.read_text())
+        doc = json.loads(path.read_bytes())
     except FileNotFoundError:
         raise DatasetError(f"{path}: no {what} here") from None
     except IsADirectoryError:

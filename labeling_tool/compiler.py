@@ -11,10 +11,9 @@ from pathlib import Path
 
 from datagen.errors import SettingError, UserError
 from datagen.files import atomic_write
-from datagen.dataset.manifests import FORMAT, read_manifest
+from datagen.dataset.manifests import FORMAT, manifest_bytes, read_manifest
 from datagen.dataset.preflags import read_queue
 from datagen.dataset import Dataset
-from datagen.dataset.shards import dumps
 
 from datagen.dataset.events import is_decision, read_logs, verdicts
 
@@ -67,24 +66,30 @@ def compile_manifest(dataset, labels_dir, policy: str = "any-bad", unreviewed: s
     logs, problems = read_logs(labels_dir)
     flagged = flagged_subjects(dataset, required=unreviewed == "reject-flagged")
     # a skip is "decide later": the subject counts as unreviewed, as in the review window
-    per_reviewer = {r: {s: (e.action, e.reasons) for s, e in verdicts(ev).items() if is_decision(e)}
-                    for r, ev in logs.items()}
+    votes_of: dict[str, dict] = {}  # subject -> {reviewer: (good|bad, reasons)}, reviewers in sorted order
+    for r in sorted(logs):
+        for s, e in verdicts(logs[r]).items():
+            if is_decision(e):
+                if s in votes_of:
+                    votes_of[s][r] = (e.action, e.reasons)
+                else:
+                    votes_of[s] = {r: (e.action, e.reasons)}
     known = {s for shard in index["shards"] for s in shard["subjects"]}
-    strangers = sorted({s for v in per_reviewer.values() for s in v} - known)
+    strangers = sorted(votes_of.keys() - known)
     if strangers:
         problems.append(f"{len(strangers)} reviewed subject(s) are not in this dataset (e.g. {strangers[0]})")
-    rows, conflicts = [], []
+    rows, conflicts, nobody = [], [], {}
     for shard in index["shards"]:
         for s in shard["subjects"]:
-            votes = {r: v[s] for r, v in per_reviewer.items() if s in v}
+            votes = votes_of.get(s, nobody)
             verdict, reasons = merge(votes, policy, unreviewed, flagged is not None and s in flagged)
             if shard["name"] in unverified:
                 verdict, reasons = "rejected", ["unverified_shard"]
-            if len({v[0] for v in votes.values()}) > 1:
+            actions = {r: v[0] for r, v in votes.items()}
+            if len(set(actions.values())) > 1:
                 conflicts.append(s)
             rows.append({"subject": s, "shard": shard["name"], "verdict": verdict, "reasons": reasons,
-                         "reviewers": sorted(votes), "votes": {r: v[0] for r, v in sorted(votes.items())},
-                         "split": None})
+                         "reviewers": list(votes), "votes": actions, "split": None})
     accepted = [r for r in rows if r["verdict"] == "accepted"]
     if test_count is None:
         test_count = min(100, max(1, len(accepted) // 10)) if accepted else 0
@@ -168,7 +173,7 @@ def write_manifest(manifest: dict, out) -> Path:
                   created=datetime.now(timezone.utc).isoformat(timespec="seconds"))
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write(out, dumps({"header": header, "subjects": manifest["subjects"]}))
+        atomic_write(out, manifest_bytes(header, manifest["subjects"]))
     except OSError as e:
         raise UserError(f"cannot write {out}: {e.strerror}") from None
     return out

@@ -241,6 +241,9 @@ def test_compile_is_deterministic_versioned_and_immutable(tiny_dataset, tmp_path
     assert {k: v for k, v in h1.items() if k not in ("version", "parent_version", "created")} == \
            {k: v for k, v in h2.items() if k not in ("version", "parent_version", "created")}
     assert len(h1["dataset_index_sha256"]) == 64
+    lines = out2.read_text().splitlines()  # one subject per line, after the header
+    rows = lines[lines.index(' "subjects": [') + 1:-2]
+    assert [json.loads(line.rstrip(",")) for line in rows] == m2["subjects"] and lines[-2:] == [" ]", "}"]
     before = out1.read_bytes()
     capsys.readouterr()
     assert label_main(["compile", str(tiny_dataset), "--labels", str(labels), "--out", str(out1)]) == 2

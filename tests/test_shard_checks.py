@@ -8,6 +8,7 @@ import io
 import json
 import shutil
 import tarfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -102,16 +103,20 @@ def test_tampered_sidecars_are_refused_by_every_reader_as_by_verify(copy, tmp_pa
 
 
 def test_a_second_check_reads_no_tar_and_a_changed_sidecar_is_checked_again(copy, monkeypatch):
-    hashed, walked = [], []
-    real_hash, real_walk = shards.sha256_file, shards.tar_layout
-    monkeypatch.setattr(shards, "sha256_file", lambda p: hashed.append(p) or real_hash(p))
-    monkeypatch.setattr(shards, "tar_layout", lambda p: walked.append(p) or real_walk(p))
+    read, real_read = [], Path.read_bytes
+
+    def read_bytes(path):  # the check reads a tar's bytes once: hashed, then walked
+        if path.suffix == ".tar":
+            read.append(path)
+        return real_read(path)
+
+    monkeypatch.setattr(Path, "read_bytes", read_bytes)
     (copy / shards.SHARD_CHECKS).unlink(missing_ok=True)
-    assert Dataset(copy).check_shards([0, 1]) == {} and len(hashed) == len(walked) == 2
-    hashed.clear(), walked.clear()
-    assert Dataset(copy).check_shards([0, 1]) == {} and hashed == walked == []
+    assert Dataset(copy).check_shards([0, 1]) == {} and read == [tar_path(copy, 0), tar_path(copy, 1)]
+    read.clear()
+    assert Dataset(copy).check_shards([0, 1]) == {} and read == []
     damage(copy, "offset_digit", 0)
-    assert list(Dataset(copy).check_shards([0, 1])) == [0] and hashed == [tar_path(copy, 0)]
+    assert list(Dataset(copy).check_shards([0, 1])) == [0] and read == [tar_path(copy, 0)]
 
 
 def test_layout_of_a_good_tar_matches_its_sidecar(tiny_dataset):
@@ -205,3 +210,27 @@ def test_png_decoding_gives_pillows_pixels(tmp_path):
             want = np.asarray(ref)
         got = shards.decode_png(buf.getvalue())
         assert got.dtype == want.dtype and got.shape == want.shape and np.array_equal(got, want), im.mode
+
+
+
+def _with_header_field(data: bytes, at: int, value: bytes) -> bytes:
+    """``data`` with bytes [at, at + len(value)) of the first header replaced, its checksum made to hold."""
+    data = bytearray(data)
+    data[at:at + len(value)] = value
+    data[148:156] = b" " * 8
+    data[148:156] = b"%06o\0 " % sum(data[:512])
+    return bytes(data)
+
+
+def test_other_spellings_of_header_numbers_read_as_tarfile_reads_them_and_negatives_refused(tiny_dataset, tmp_path):
+    good = tar_path(tiny_dataset, 0).read_bytes()
+    size = int(good[124:135], 8)
+    tar = tmp_path / "odd.tar"
+    for spelling in ((b"%o" % size).rjust(11) + b"\0", (b"%o" % size).ljust(11) + b" ", b"%o\0" % size + b"7" * 3):
+        tar.write_bytes(_with_header_field(good, 124, spelling.ljust(12, b"\0")[:12]))
+        assert shards.tar_layout(tar) == shards.tar_layout(tar_path(tiny_dataset, 0)) == _tar_runs_by_tarfile(tar)
+    for at, negative in ((124, b"-%010o\0" % (size + 512)), (148, None)):  # a negative size once walked backwards
+        data = _with_header_field(good, at, negative) if negative else good[:148] + b"-01234\0 " + good[156:]
+        tar.write_bytes(data)
+        with pytest.raises(DatasetError, match="odd.tar: unreadable tar header at byte 0"):
+            shards.tar_layout(tar)

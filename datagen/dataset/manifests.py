@@ -16,9 +16,11 @@ sha256(subject id): deterministic, and independent of reviewing order. The versi
 name without extension; a new review produces a new file (``parent_version`` names the one it
 revises); a published manifest is never edited. ``dataset_index_sha256`` ties a manifest to the
 dataset it was compiled for. ``label-tool compile`` writes them; training and evaluation read them.
+The file holds the header indented and one subject per line (``manifest_bytes``).
 """
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 from ..errors import DatasetError, UserError
@@ -29,6 +31,15 @@ from .shards import shard_index
 FORMAT = "panolam-manifest/1"
 VERDICTS = ("accepted", "rejected")
 SPLITS = ("train", "test", None)
+_ROW = json.JSONEncoder(sort_keys=True, allow_nan=False).encode  # compact rows need no Python-level encoder
+
+
+def manifest_bytes(header: dict, subjects: list[dict]) -> bytes:
+    """A manifest's canonical bytes (sorted keys): the header indented, then one subject per line, so a
+    diff of two versions shows a line per changed subject (and 165K rows encode in about a second)."""
+    head = json.dumps(header, sort_keys=True, indent=1, allow_nan=False).replace("\n", "\n ")
+    rows = "[\n  " + ",\n  ".join(map(_ROW, subjects)) + "\n ]" if subjects else "[]"
+    return ('{\n "header": ' + head + ',\n "subjects": ' + rows + "\n}\n").encode()
 
 
 def read_manifest(path) -> dict:

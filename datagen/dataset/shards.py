@@ -271,8 +271,6 @@ def read_sidecar(root, index: int, strict: bool = False) -> dict | None:
     DatasetError saying so (None still means there is none).
     """
     path = sidecar_path(root, index)
-    if not path.exists():
-        return None
     try:
         side = read_json(path, "shard sidecar", FORMAT)
         require(side, "tar_bytes", int, path)
@@ -283,7 +281,7 @@ def read_sidecar(root, index: int, strict: bool = False) -> dict | None:
                     and 0 <= span[0] < span[1]):
                 raise DatasetError(f"{path}: byte range of {key} is {span!r}, not [start, end)")
     except DatasetError:
-        if strict:
+        if strict and path.exists():
             raise
         return None
     return side
@@ -427,26 +425,27 @@ SHARD_CHECKS = ".verified-shards.json"  # in the dataset folder: the shards that
 _CHECKS = "size+sha256+layout/1"  # what a remembered pass vouches for
 
 
-def tar_layout(path) -> list[tuple[str, int, int]]:
+def tar_layout(path, data: bytes | None = None) -> list[tuple[str, int, int]]:
     """(subject, start, end) of each run of members sharing a key, in tar order, from the member
     headers alone: the byte range [start, end) a writer records, from the first member's header to the
-    end of the last member's 512-byte-padded data (members as :func:`tar_members` reads them)."""
+    end of the last member's 512-byte-padded data (members as :func:`tar_members` reads them).
+    ``data``: the tar's bytes when they are already read."""
+    data = Path(path).read_bytes() if data is None else data
     try:
-        members = tar_members(Path(path).read_bytes(), path)
+        walked = _ustar_walk(data, path)
+        if walked is None:
+            members = _tarfile_members(data)
+            walked = [m[0] for m in members], [m[1] for m in members], [m[3] for m in members]
     except (tarfile.TarError, EOFError, OSError) as e:
         raise DatasetError(f"{path}: corrupt or truncated shard ({e})") from None
-    runs: list[list] = []
-    for name, start, _, end, _ in members:
-        key, end = name.partition(".")[0], -(-end // BLOCK) * BLOCK
-        if runs and runs[-1][0] == key:
-            runs[-1][2] = end
-        else:
-            runs.append([key, start, end])
-    return [tuple(r) for r in runs]
+    names, starts, ends = walked
+    keys = [name.partition(b"." if isinstance(name, bytes) else ".")[0] for name in names]
+    firsts = [i for i, (before, key) in enumerate(zip([None, *keys], keys)) if key != before]
+    return [(_text(keys[first]), starts[first], -(-ends[last - 1] // BLOCK) * BLOCK)
+            for first, last in zip(firsts, [*firsts[1:], len(keys)])]
 
 
 BLOCK = tarfile.BLOCKSIZE
-_PLAIN_FILE = (b"0", b"\0")
 
 
 def tar_members(data: bytes, path) -> list[tuple[str, int, int, int, bool]]:
@@ -454,43 +453,105 @@ def tar_members(data: bytes, path) -> list[tuple[str, int, int, int, bool]]:
     bytes ``data`` (a shard, or a subject's byte range of one) from ``path``. Plain ustar headers (what
     :class:`ShardWriter` writes) are walked here; a tar with other members (extended headers, links)
     is read with tarfile, whose errors the caller reports."""
-    plain = _ustar_members(data, path)
-    if plain is not None:
-        return [(name, header, header + BLOCK, end, True) for name, header, end in plain]
+    walked = _ustar_walk(data, path)
+    if walked is None:
+        return _tarfile_members(data)
+    return [(_text(name), start, start + BLOCK, end, True) for name, start, end in zip(*walked)]
+
+
+def _tarfile_members(data: bytes) -> list[tuple[str, int, int, int, bool]]:
     with tarfile.open(fileobj=io.BytesIO(data), mode="r:") as tar:
         return [(m.name, m.offset, m.offset_data, m.offset_data + m.size, m.isfile()) for m in tar]
 
 
+def _text(name: bytes | str) -> str:
+    return name.decode("utf-8", "replace") if isinstance(name, bytes) else name
+
+
 def _octal(field: bytes) -> int:
-    return int(field.split(b"\0", 1)[0].strip() or b"0", 8)
+    """A numeric header field as tarfile reads it (to the first NUL, spaces stripped); ValueError when it
+    is not a number of 0 or more."""
+    value = int(field.split(b"\0", 1)[0].strip() or b"0", 8)
+    if value < 0:
+        raise ValueError(f"negative number {value}")
+    return value
 
 
-def _ustar_members(data: bytes, path) -> list[tuple[str, int, int]] | None:
-    """(name, header offset, end of data) of each member of the tar bytes ``data``; None when a member is
-    not a plain file with a plain header. A header whose checksum fails is a DatasetError."""
-    members, offset = [], 0
-    while offset + BLOCK <= len(data):
-        header = data[offset:offset + BLOCK]
-        if not any(header):
-            return members  # the end-of-archive blocks
-        if header[156:157] not in _PLAIN_FILE or header[124] & 0x80:
-            return None
+_ZERO_BLOCK = bytes(BLOCK)
+_SIZE_DIGITS = 8.0 ** np.arange(10, -1, -1)
+_CHECKSUM_DIGITS = (8 ** np.arange(5, -1, -1)).astype(np.float32)
+_CHECKSUM_WEIGHTS = np.ones(BLOCK, np.float32)  # a header's bytes summed, its checksum field counted as 8 spaces
+_CHECKSUM_WEIGHTS[148:156] = 0
+
+
+def _ustar_walk(data: bytes, path) -> tuple[list[bytes], list[int], list[int]] | None:
+    """(names, header offsets, ends of data) of the members of the tar bytes ``data`` when every member
+    is a plain file with a plain header, else None. A header that cannot be read (a size or checksum
+    that is not a number of 0 or more) or whose checksum fails is a DatasetError naming the first such
+    header. The walk reads each header's size; the checksums and names of the headers it walked are
+    then read together (numpy)."""
+    n = len(data)
+    blocks = np.frombuffer(data, np.uint8, n // BLOCK * BLOCK).reshape(-1, BLOCK)
+    digits = blocks[:, 124:135] - np.uint8(48)  # '0'..'7' -> 0..7; anything else wraps above 7
+    size = (digits.astype(np.float64) @ _SIZE_DIGITS).astype(np.int64)  # exact below 2 ** 53
+    spelled = (digits.max(axis=1) <= 7) & ((blocks[:, 135] == 0) | (blocks[:, 135] == 32)) \
+        & ((blocks[:, 156] == 48) | (blocks[:, 156] == 0))  # a file ('0' or NUL) of 11 digits, NUL
+    fast = np.where(spelled & (np.arange(1, len(blocks) + 1) * BLOCK + size <= n), size, -1).tolist()
+    heads, sizes, b, stop = [], [], 0, None
+    while b < len(fast):
+        size = fast[b]
+        if size < 0:  # another spelling, the end-of-archive blocks, or a member past the end
+            o = b * BLOCK
+            if data[o:o + BLOCK] == _ZERO_BLOCK:
+                break
+            if data[o + 156] not in (0, 48) or data[o + 124] & 0x80:  # not a file ('0' or NUL)
+                stop = "another kind of member"
+                break
+            try:
+                size = _octal(data[o + 124:o + 136])
+            except ValueError:
+                stop = "unreadable"
+                break
+            if o + BLOCK + size > n:
+                stop = "truncated member"
+                heads.append(b), sizes.append(size)
+                break
+        heads.append(b), sizes.append(size)
+        b += 1 + -(-size // BLOCK)
+    else:
+        stop = "truncated header" if b * BLOCK < n else None
+    headers = blocks[heads]
+    _check_headers(headers, heads, path)
+    if stop == "another kind of member":
+        return None
+    if stop == "unreadable":
+        raise DatasetError(f"{path}: unreadable tar header at byte {b * BLOCK}")
+    if stop is not None:
+        raise DatasetError(f"{path}: truncated (a {stop.split()[1]} runs past the end of the file)")
+    names = [x.split(b"\0", 1)[0] for x in np.ascontiguousarray(headers[:, :100]).view("S100").ravel().tolist()]
+    ustar = (headers[:, 257:262] == np.frombuffer(b"ustar", np.uint8)).all(axis=1)
+    for k in np.flatnonzero(ustar & (headers[:, 345] != 0)):  # a prefix before the name
+        names[k] = headers[k, 345:500].tobytes().split(b"\0", 1)[0] + b"/" + names[k]
+    return names, [b * BLOCK for b in heads], [(b + 1) * BLOCK + size for b, size in zip(heads, sizes)]
+
+
+def _check_headers(headers: np.ndarray, blocks: list[int], path) -> None:
+    """DatasetError naming the first of ``headers`` (rows of 512 bytes, at the block numbers ``blocks``)
+    whose checksum field cannot be read or differs from the sum of its bytes (the field counted as spaces)."""
+    total = headers.astype(np.float32) @ _CHECKSUM_WEIGHTS + 8 * 32  # exact: below 512 * 255 < 2 ** 24
+    field = headers[:, 148:156]
+    digits = field[:, :6] - np.uint8(48)  # '0'..'7' -> 0..7; anything else wraps above 7
+    written = (digits <= 7).all(axis=1) & ((field[:, 6] == 0) | (field[:, 6] == 32) & ((field[:, 7] == 0) | (field[:, 7] == 32)))
+    stored = np.where(written, digits.astype(np.float32) @ _CHECKSUM_DIGITS, -1)  # as the writer spells it
+    for k in np.flatnonzero(~written):  # any other spelling, as tarfile reads it
         try:
-            stored, size = _octal(header[148:156]), _octal(header[124:136])
+            stored[k] = _octal(field[k].tobytes())
         except ValueError:
-            raise DatasetError(f"{path}: unreadable tar header at byte {offset}") from None
-        if stored != sum(header[:148]) + 8 * 32 + sum(header[156:]):
-            raise DatasetError(f"{path}: tar header at byte {offset} fails its checksum")
-        name = header[:100].split(b"\0", 1)[0]
-        prefix = header[345:500].split(b"\0", 1)[0] if header[257:262] == b"ustar" else b""
-        end = offset + BLOCK + size
-        if end > len(data):
-            raise DatasetError(f"{path}: truncated (a member runs past the end of the file)")
-        members.append(((prefix + b"/" + name if prefix else name).decode("utf-8", "replace"), offset, end))
-        offset = end + -size % BLOCK
-    if offset < len(data):
-        raise DatasetError(f"{path}: truncated (a header runs past the end of the file)")
-    return members
+            stored[k] = -1
+    bad = np.flatnonzero(stored != total)
+    if bad.size:
+        what = "unreadable tar header at byte {}" if stored[bad[0]] < 0 else "tar header at byte {} fails its checksum"
+        raise DatasetError(f"{path}: " + what.format(blocks[bad[0]] * BLOCK))
 
 
 def _first_difference(got: list, want: list, where: str) -> str:
@@ -500,14 +561,14 @@ def _first_difference(got: list, want: list, where: str) -> str:
     return f"{len(got)} subjects where {where} has {len(want)}"
 
 
-def layout_problem(root, i: int, side: dict, subjects: list) -> str | None:
+def layout_problem(root, i: int, side: dict, subjects: list, data: bytes | None = None) -> str | None:
     """The first way shard ``i``'s sidecar disagrees with the dataset index (``subjects``: the ids the
     index lists for it) or with its tar's member headers (each subject's key and byte range), as one
-    line naming the file; None when they agree."""
+    line naming the file; None when they agree. ``data``: the tar's bytes when they are already read."""
     tar, side_path = tar_path(root, i), sidecar_path(root, i)
     if side["subjects"] != subjects:
         return f"{side_path}: lists {_first_difference(side['subjects'], subjects, 'the dataset index')}"
-    runs = tar_layout(tar)
+    runs = tar_layout(tar, data)
     keys = [k for k, _, _ in runs]
     if keys != subjects:
         return f"{tar}: holds {_first_difference(keys, subjects, 'its sidecar')}"
@@ -553,7 +614,9 @@ def check_shards(root, shards, index: dict) -> dict[int, str]:
         if side is None:
             problems[i] = f"{tar}: incomplete (no sidecar {side_path.name})"
             continue
-        if not tar.exists():
+        try:
+            tar_stamp = _stat_stamp(tar)
+        except FileNotFoundError:
             problems[i] = f"{tar}: missing although its sidecar exists"
             continue
         if i not in listed:
@@ -562,22 +625,24 @@ def check_shards(root, shards, index: dict) -> dict[int, str]:
         if side["subjects"] != listed[i]:
             problems[i] = layout_problem(root, i, side, listed[i])
             continue
-        stamp = [_stat_stamp(tar), _stat_stamp(side_path), side["tar_sha256"], _CHECKS]
+        stamp = [tar_stamp, _stat_stamp(side_path), side["tar_sha256"], _CHECKS]
         if cache.get(tar.name) == stamp:
             passed[tar.name] = stamp
-        elif tar.stat().st_size != side["tar_bytes"]:
-            problems[i] = f"{tar}: size {tar.stat().st_size} differs from the sidecar's {side['tar_bytes']}"
-        elif sha256_file(tar) != side["tar_sha256"]:
-            problems[i] = f"{tar}: sha256 differs from the sidecar (corrupted)"
+        elif tar_stamp[0] != side["tar_bytes"]:
+            problems[i] = f"{tar}: size {tar_stamp[0]} differs from the sidecar's {side['tar_bytes']}"
         else:
-            problem = layout_problem(root, i, side, listed[i])
-            if problem:
-                problems[i] = problem
+            data = tar.read_bytes()  # hashed, then walked
+            if hashlib.sha256(data).hexdigest() != side["tar_sha256"]:
+                problems[i] = f"{tar}: sha256 differs from the sidecar (corrupted)"
             else:
-                passed[tar.name] = stamp
+                problem = layout_problem(root, i, side, listed[i], data)
+                if problem:
+                    problems[i] = problem
+                else:
+                    passed[tar.name] = stamp
     if any(cache.get(name) != stamp for name, stamp in passed.items()):
         try:
-            atomic_write(cache_path, dumps({**cache, **passed}))
+            atomic_write(cache_path, json.dumps({**cache, **passed}, sort_keys=True).encode())
         except OSError:
             pass  # a read-only dataset: nothing remembered, the next check hashes again
     return problems
