@@ -45,6 +45,12 @@ def atomic_write(path, data: Union[bytes, Callable]) -> Path:
     return path
 
 
+def as_path(path) -> Path:
+    """``path`` as a Path (itself when it is one: wrapping a Path again parses it again, which per shard
+    of a 165K-subject dataset adds up)."""
+    return path if isinstance(path, Path) else Path(path)
+
+
 def sha256_file(path) -> str:
     """Hex sha256 of a file's bytes, read in 1 MiB blocks."""
     h = hashlib.sha256()
@@ -57,7 +63,7 @@ def sha256_file(path) -> str:
 def read_json(path, what: str, fmt: str | None = None) -> dict:
     """A JSON object from ``path``; DatasetError naming the file when it is missing, unreadable, not
     JSON, not an object, or (with ``fmt``) has another ``format`` field (or a ``header.format``)."""
-    path = Path(path)
+    path = as_path(path)
     try:
         doc = json.loads(path.read_bytes())
     except FileNotFoundError:

@@ -36,7 +36,7 @@ import numpy as np
 from PIL import Image
 
 from ..errors import DatasetError, SettingError
-from ..files import atomic_write, read_json, require, sha256_file
+from ..files import as_path, atomic_write, read_json, require, sha256_file
 
 FORMAT = "panolam-heads/1"
 INDEX_NAME = "index.json"
@@ -73,15 +73,15 @@ def job_shards(num_shard_files: int, job: int, jobs: int) -> list[int]:
 
 
 def tar_path(root, i) -> Path:
-    return Path(root) / f"{shard_name(i)}.tar"
+    return as_path(root) / f"{shard_name(i)}.tar"
 
 
 def sidecar_path(root, i) -> Path:
-    return Path(root) / f"{shard_name(i)}.json"
+    return as_path(root) / f"{shard_name(i)}.json"
 
 
 def truth_path(root, i) -> Path:
-    return Path(root) / TRUTH_DIR / f"{shard_name(i)}.json"
+    return as_path(root) / TRUTH_DIR / f"{shard_name(i)}.json"
 
 
 def dumps(obj) -> bytes:
@@ -482,25 +482,29 @@ _SIZE_DIGITS = 8.0 ** np.arange(10, -1, -1)
 _CHECKSUM_DIGITS = (8 ** np.arange(5, -1, -1)).astype(np.float32)
 _CHECKSUM_WEIGHTS = np.ones(BLOCK, np.float32)  # a header's bytes summed, its checksum field counted as 8 spaces
 _CHECKSUM_WEIGHTS[148:156] = 0
+_OCTAL_DIGITS = np.array([0xF8F8F8F8, 0xF8F8F8F8, 0xFFF8F8F8], np.uint32)  # a byte '0'..'7' keeps 0x30
+_ZEROS = np.array([0x30303030, 0x30303030, 0x00303030], np.uint32)  # ... and the field's last byte is NUL
+_FILE_TYPE = np.isin(np.arange(256), (0, 48))  # by byte value: the type flag of a plain file (NUL or '0')
+_WRITTEN_CHECKSUM = (0xFFFF_F8F8_F8F8_F8F8, 0x2000_3030_3030_3030)  # mask, value: 6 octal digits, NUL, space
 
 
 def _ustar_walk(data: bytes, path) -> tuple[list[bytes], list[int], list[int]] | None:
     """(names, header offsets, ends of data) of the members of the tar bytes ``data`` when every member
     is a plain file with a plain header, else None. A header that cannot be read (a size or checksum
     that is not a number of 0 or more) or whose checksum fails is a DatasetError naming the first such
-    header. The walk reads each header's size; the checksums and names of the headers it walked are
-    then read together (numpy)."""
+    header. Every 512-byte block is first read as the writer spells a file's header (numpy: 11 octal
+    digits of size, then NUL; a space there is read as tarfile reads it); the walk from header to header looks those sizes up and reads any other
+    spelling as tarfile does. The checksums and names of the headers it walked are read together."""
     n = len(data)
     blocks = np.frombuffer(data, np.uint8, n // BLOCK * BLOCK).reshape(-1, BLOCK)
-    digits = blocks[:, 124:135] - np.uint8(48)  # '0'..'7' -> 0..7; anything else wraps above 7
-    size = (digits.astype(np.float64) @ _SIZE_DIGITS).astype(np.int64)  # exact below 2 ** 53
-    spelled = (digits.max(axis=1) <= 7) & ((blocks[:, 135] == 0) | (blocks[:, 135] == 32)) \
-        & ((blocks[:, 156] == 48) | (blocks[:, 156] == 0))  # a file ('0' or NUL) of 11 digits, NUL
-    fast = np.where(spelled & (np.arange(1, len(blocks) + 1) * BLOCK + size <= n), size, -1).tolist()
+    words = np.ascontiguousarray(blocks[:, 124:136]).view("<u4")  # the size field as three little-endian words
+    spelled = ((words & _OCTAL_DIGITS) == _ZEROS).all(axis=1) & _FILE_TYPE[blocks[:, 156]]  # 11 digits, NUL
+    fast = np.where(spelled, (blocks[:, 124:135] - np.uint8(48)).astype(np.float64) @ _SIZE_DIGITS, -1)
+    fast = fast.astype(np.int64).tolist()
     heads, sizes, b, stop = [], [], 0, None
     while b < len(fast):
         size = fast[b]
-        if size < 0:  # another spelling, the end-of-archive blocks, or a member past the end
+        if size < 0 or (b + 1) * BLOCK + size > n:  # another spelling, the end blocks, or past the end
             o = b * BLOCK
             if data[o:o + BLOCK] == _ZERO_BLOCK:
                 break
@@ -529,9 +533,9 @@ def _ustar_walk(data: bytes, path) -> tuple[list[bytes], list[int], list[int]] |
     if stop is not None:
         raise DatasetError(f"{path}: truncated (a {stop.split()[1]} runs past the end of the file)")
     names = [x.split(b"\0", 1)[0] for x in np.ascontiguousarray(headers[:, :100]).view("S100").ravel().tolist()]
-    ustar = (headers[:, 257:262] == np.frombuffer(b"ustar", np.uint8)).all(axis=1)
-    for k in np.flatnonzero(ustar & (headers[:, 345] != 0)):  # a prefix before the name
-        names[k] = headers[k, 345:500].tobytes().split(b"\0", 1)[0] + b"/" + names[k]
+    for k in np.flatnonzero(headers[:, 345]):  # a ustar header's prefix before the name
+        if headers[k, 257:262].tobytes() == b"ustar":
+            names[k] = headers[k, 345:500].tobytes().split(b"\0", 1)[0] + b"/" + names[k]
     return names, [b * BLOCK for b in heads], [(b + 1) * BLOCK + size for b, size in zip(heads, sizes)]
 
 
@@ -540,9 +544,9 @@ def _check_headers(headers: np.ndarray, blocks: list[int], path) -> None:
     whose checksum field cannot be read or differs from the sum of its bytes (the field counted as spaces)."""
     total = headers.astype(np.float32) @ _CHECKSUM_WEIGHTS + 8 * 32  # exact: below 512 * 255 < 2 ** 24
     field = headers[:, 148:156]
-    digits = field[:, :6] - np.uint8(48)  # '0'..'7' -> 0..7; anything else wraps above 7
-    written = (digits <= 7).all(axis=1) & ((field[:, 6] == 0) | (field[:, 6] == 32) & ((field[:, 7] == 0) | (field[:, 7] == 32)))
-    stored = np.where(written, digits.astype(np.float32) @ _CHECKSUM_DIGITS, -1)  # as the writer spells it
+    mask, value = _WRITTEN_CHECKSUM  # the field as the writer spells it, read as one little-endian word
+    written = (np.ascontiguousarray(field).view("<u8").ravel() & np.uint64(mask)) == np.uint64(value)
+    stored = np.where(written, (field[:, :6] - np.uint8(48)).astype(np.float32) @ _CHECKSUM_DIGITS, -1)
     for k in np.flatnonzero(~written):  # any other spelling, as tarfile reads it
         try:
             stored[k] = _octal(field[k].tobytes())
