@@ -9,12 +9,13 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 pytest.importorskip("vtkmodules", reason="the review window needs VTK")
 
 from labeling_tool.cli import build_queue, main as label_main  # noqa: E402
-from datagen.dataset.events import EventLog, parse_event, read_log, read_logs, verdicts  # noqa: E402
+from datagen.dataset.events import Event, EventLog, Verdicts, parse_event, read_log, read_logs, verdicts  # noqa: E402
 from labeling_tool.review import ReviewApp  # noqa: E402
 from datagen.dataset.manifests import read_manifest  # noqa: E402
 from labeling_tool.compiler import compile_manifest, subject_hash  # noqa: E402
@@ -198,6 +199,15 @@ def test_undo_is_an_event_and_cancels_the_latest_verdict(tmp_path):
     assert set(v) == {"a"} and v["a"].action == "bad"
     with pytest.raises(UserError):
         EventLog(tmp_path, "../escape")
+
+
+def test_verdicts_of_a_whole_log_are_those_kept_event_by_event():
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        events = [Event(i + 1, "t", "r", f"s{rng.integers(5)}", "shard-000000", action, ("blur",) if action == "bad"
+                        else ()) for i, action in enumerate(rng.choice(["good", "bad", "skip", "undo"], rng.integers(30)))]
+        kept = Verdicts(events).current
+        assert list(verdicts(events).items()) == list(kept.items())
 
 
 def two_reviewers(tiny_dataset, labels):
