@@ -212,7 +212,6 @@ def test_png_decoding_gives_pillows_pixels(tmp_path):
         assert got.dtype == want.dtype and got.shape == want.shape and np.array_equal(got, want), im.mode
 
 
-
 def _with_header_field(data: bytes, at: int, value: bytes) -> bytes:
     """``data`` with bytes [at, at + len(value)) of the first header replaced, its checksum made to hold."""
     data = bytearray(data)
@@ -229,8 +228,9 @@ def test_other_spellings_of_header_numbers_read_as_tarfile_reads_them_and_negati
     for spelling in ((b"%o" % size).rjust(11) + b"\0", (b"%o" % size).ljust(11) + b" ", b"%o\0" % size + b"7" * 3):
         tar.write_bytes(_with_header_field(good, 124, spelling.ljust(12, b"\0")[:12]))
         assert shards.tar_layout(tar) == shards.tar_layout(tar_path(tiny_dataset, 0)) == _tar_runs_by_tarfile(tar)
-    for at, negative in ((124, b"-%010o\0" % (size + 512)), (148, None)):  # a negative size once walked backwards
-        data = _with_header_field(good, at, negative) if negative else good[:148] + b"-01234\0 " + good[156:]
+    negative_size = _with_header_field(good, 124, b"-%010o\0" % (size + 512))  # once walked backwards
+    negative_checksum = good[:148] + b"-01234\0 " + good[156:]
+    for data in (negative_size, negative_checksum):
         tar.write_bytes(data)
         with pytest.raises(DatasetError, match="odd.tar: unreadable tar header at byte 0"):
             shards.tar_layout(tar)

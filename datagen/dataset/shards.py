@@ -433,13 +433,15 @@ def tar_layout(path, data: bytes | None = None) -> list[tuple[str, int, int]]:
     data = Path(path).read_bytes() if data is None else data
     try:
         walked = _ustar_walk(data, path)
-        if walked is None:
+        if walked is not None:
+            names, starts, ends = walked
+            keys = [name.partition(b".")[0] for name in names]
+        else:
             members = _tarfile_members(data)
-            walked = [m[0] for m in members], [m[1] for m in members], [m[3] for m in members]
+            keys = [m[0].partition(".")[0] for m in members]
+            starts, ends = [m[1] for m in members], [m[3] for m in members]
     except (tarfile.TarError, EOFError, OSError) as e:
         raise DatasetError(f"{path}: corrupt or truncated shard ({e})") from None
-    names, starts, ends = walked
-    keys = [name.partition(b"." if isinstance(name, bytes) else ".")[0] for name in names]
     firsts = [i for i, (before, key) in enumerate(zip([None, *keys], keys)) if key != before]
     return [(_text(keys[first]), starts[first], -(-ends[last - 1] // BLOCK) * BLOCK)
             for first, last in zip(firsts, [*firsts[1:], len(keys)])]
@@ -493,7 +495,7 @@ def _ustar_walk(data: bytes, path) -> tuple[list[bytes], list[int], list[int]] |
     is a plain file with a plain header, else None. A header that cannot be read (a size or checksum
     that is not a number of 0 or more) or whose checksum fails is a DatasetError naming the first such
     header. Every 512-byte block is first read as the writer spells a file's header (numpy: 11 octal
-    digits of size, then NUL; a space there is read as tarfile reads it); the walk from header to header looks those sizes up and reads any other
+    digits of size, then NUL); the walk from header to header looks those sizes up and reads any other
     spelling as tarfile does. The checksums and names of the headers it walked are read together."""
     n = len(data)
     blocks = np.frombuffer(data, np.uint8, n // BLOCK * BLOCK).reshape(-1, BLOCK)
@@ -501,37 +503,36 @@ def _ustar_walk(data: bytes, path) -> tuple[list[bytes], list[int], list[int]] |
     spelled = ((words & _OCTAL_DIGITS) == _ZEROS).all(axis=1) & _FILE_TYPE[blocks[:, 156]]  # 11 digits, NUL
     fast = np.where(spelled, (blocks[:, 124:135] - np.uint8(48)).astype(np.float64) @ _SIZE_DIGITS, -1)
     fast = fast.astype(np.int64).tolist()
-    heads, sizes, b, stop = [], [], 0, None
+    heads, sizes, b, problem, other_member = [], [], 0, None, False
     while b < len(fast):
         size = fast[b]
         if size < 0 or (b + 1) * BLOCK + size > n:  # another spelling, the end blocks, or past the end
             o = b * BLOCK
             if data[o:o + BLOCK] == _ZERO_BLOCK:
                 break
-            if data[o + 156] not in (0, 48) or data[o + 124] & 0x80:  # not a file ('0' or NUL)
-                stop = "another kind of member"
+            if not _FILE_TYPE[data[o + 156]] or data[o + 124] & 0x80:
+                other_member = True
                 break
             try:
                 size = _octal(data[o + 124:o + 136])
             except ValueError:
-                stop = "unreadable"
+                problem = f"unreadable tar header at byte {o}"
                 break
-            if o + BLOCK + size > n:
-                stop = "truncated member"
-                heads.append(b), sizes.append(size)
-                break
-        heads.append(b), sizes.append(size)
+        heads.append(b)
+        sizes.append(size)
+        if (b + 1) * BLOCK + size > n:
+            problem = "truncated (a member runs past the end of the file)"
+            break
         b += 1 + -(-size // BLOCK)
     else:
-        stop = "truncated header" if b * BLOCK < n else None
+        if b * BLOCK < n:
+            problem = "truncated (a header runs past the end of the file)"
     headers = blocks[heads]
-    _check_headers(headers, heads, path)
-    if stop == "another kind of member":
+    _check_headers(headers, heads, path)  # a failing checksum before the problem is the first to report
+    if other_member:
         return None
-    if stop == "unreadable":
-        raise DatasetError(f"{path}: unreadable tar header at byte {b * BLOCK}")
-    if stop is not None:
-        raise DatasetError(f"{path}: truncated (a {stop.split()[1]} runs past the end of the file)")
+    if problem:
+        raise DatasetError(f"{path}: {problem}")
     names = [x.split(b"\0", 1)[0] for x in np.ascontiguousarray(headers[:, :100]).view("S100").ravel().tolist()]
     for k in np.flatnonzero(headers[:, 345]):  # a ustar header's prefix before the name
         if headers[k, 257:262].tobytes() == b"ustar":
