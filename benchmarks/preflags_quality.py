@@ -432,7 +432,7 @@ def write_markdown(data: dict) -> str:
              f"Datasets: procedural, protocol 360, 32 views, {a['subjects']} subjects per run at a "
              f"{a['defect_rate']:.0%} defect rate (severity uniform in {list(ProceduralConfig().defect_severity)}), "
              f"one run per resolution, each with a seed drawn from os.urandom "
-             f"{'by an earlier run (repeated with --seeds)' if a.get('seeds') else 'for this run'} (at least "
+             f"{'by an earlier run, repeated here with --seeds' if a.get('seeds') else 'for this run'} (at least "
              f"{FRESH_SEEDS_FROM}; the tuning seeds are {TUNING_SEEDS[0]}-{TUNING_SEEDS[9]} and "
              f"{TUNING_SEEDS[10]}-{TUNING_SEEDS[40]} and {TUNING_SEEDS[41]}): "
              f"{'never used for tuning' if a.get('seeds') else 'nobody looked at these datasets before this report'}. "
