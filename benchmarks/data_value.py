@@ -223,10 +223,16 @@ def paired(a: dict[str, float], b: dict[str, float]) -> dict:
     return {"mean": float(d.mean()), "ci95": [float(d.mean()) - half, float(d.mean()) + half], "n": len(d)}
 
 
+def _report_order(arm: str) -> tuple[int, int]:
+    """Scale arms by their number of subjects, then the curation arms in CURATION_ARMS order."""
+    kind, _, what = arm.partition("-")
+    return (0, int(what)) if kind == "scale" else (1, CURATION_ARMS.index(what))
+
+
 def collect(study: Study) -> dict:
     """The figures of every finished arm in the study's folder."""
     arms = {}
-    for arm in study.args.arms:
+    for arm in sorted(study.args.arms, key=_report_order):
         run = study.out / "runs" / arm
         ev_path = run / "eval-held-out" / "eval.json"
         if not ev_path.exists():
@@ -260,6 +266,8 @@ def collect(study: Study) -> dict:
     scale = sorted((a for a in arms if a.startswith("scale-")), key=lambda a: int(a.split("-")[1]))
     for a in scale[1:]:
         comparisons[f"{a} - {scale[0]}"] = _compare(arms[a], arms[scale[0]])
+    for smaller, larger in zip(scale[1:], scale[2:]):  # each size against the one below it
+        comparisons[f"{larger} - {smaller}"] = _compare(arms[larger], arms[smaller])
     for a, b in (("auto", "as-is"), ("auto", "random"), ("truth", "as-is"), ("random", "as-is")):
         if f"curation-{a}" in arms and f"curation-{b}" in arms:
             comparisons[f"curation-{a} - curation-{b}"] = _compare(arms[f"curation-{a}"], arms[f"curation-{b}"])
