@@ -263,7 +263,7 @@ def collect(study: Study) -> dict:
             "defects": _defect_rates(run / "renders-held-out" / "preflags.json", set(per_subject(ev))),
         }
     comparisons = {}
-    scale = sorted((a for a in arms if a.startswith("scale-")), key=lambda a: int(a.split("-")[1]))
+    scale = [a for a in arms if a.startswith("scale-")]  # by size: arms are in _report_order
     for a in scale[1:]:
         comparisons[f"{a} - {scale[0]}"] = _compare(arms[a], arms[scale[0]])
     for smaller, larger in zip(scale[1:], scale[2:]):  # each size against the one below it

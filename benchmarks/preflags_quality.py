@@ -154,12 +154,29 @@ SYNTHETIC_NULLS = {"Laplace": lambda rng, n, k: rng.laplace(size=n),
                                                                                     else np.zeros(n))}
 
 
+def is_tuning_seed(seed: int) -> bool:
+    """A seed below FRESH_SEEDS_FROM or one of TUNING_SEEDS: never reported on."""
+    return seed < FRESH_SEEDS_FROM or seed in TUNING_SEEDS
+
+
+def seed_ranges(seeds) -> str:
+    """``seeds`` as runs of consecutive numbers: '0-9, 21-51 and 6197'."""
+    runs: list[list[int]] = []
+    for s in sorted(seeds):
+        if runs and s == runs[-1][1] + 1:
+            runs[-1][1] = s
+        else:
+            runs.append([s, s])
+    parts = [f"{a}-{b}" if b > a else f"{a}" for a, b in runs]
+    return " and ".join([", ".join(parts[:-1]), parts[-1]] if len(parts) > 1 else parts)
+
+
 def fresh_seeds(count: int) -> list[int]:
-    """``count`` distinct dataset seeds from os.urandom, none below FRESH_SEEDS_FROM nor a tuning seed."""
+    """``count`` distinct dataset seeds from os.urandom, none of them a tuning seed (``is_tuning_seed``)."""
     seeds: list[int] = []
     while len(seeds) < count:
         s = int.from_bytes(os.urandom(4), "little") % (2 ** 31)
-        if s >= FRESH_SEEDS_FROM and s not in seeds and s not in TUNING_SEEDS:
+        if not is_tuning_seed(s) and s not in seeds:
             seeds.append(s)
     return seeds
 
@@ -433,8 +450,7 @@ def write_markdown(data: dict) -> str:
              f"{a['defect_rate']:.0%} defect rate (severity uniform in {list(ProceduralConfig().defect_severity)}), "
              f"one run per resolution, each with a seed drawn from os.urandom "
              f"{'by an earlier run, repeated here with --seeds' if a.get('seeds') else 'for this run'} (at least "
-             f"{FRESH_SEEDS_FROM}; the tuning seeds are {TUNING_SEEDS[0]}-{TUNING_SEEDS[9]} and "
-             f"{TUNING_SEEDS[10]}-{TUNING_SEEDS[40]} and {TUNING_SEEDS[41]}): "
+             f"{FRESH_SEEDS_FROM}; the tuning seeds are {seed_ranges(TUNING_SEEDS)}): "
              f"{'never used for tuning' if a.get('seeds') else 'nobody looked at these datasets before this report'}. "
              f"Goals: any-defect precision and recall >= {GOALS['any_precision']}, every class's recall >= "
              f"{GOALS['class_recall']}, clean subjects flagged <= {GOALS['clean_flagged']:.0%}.", "",
@@ -581,9 +597,10 @@ def main(argv=None) -> int:
         seeds = args.seeds if len(args.seeds) > 1 else [args.seeds[0] + i for i in range(count)]
         if len(seeds) != count:
             raise SystemExit(f"--seeds: {len(seeds)} seeds for {count} runs")
-        tuned = [s for s in seeds if s < FRESH_SEEDS_FROM or s in TUNING_SEEDS]
+        tuned = [s for s in seeds if is_tuning_seed(s)]
         if tuned:
-            raise SystemExit(f"--seeds: {tuned[0]} is a tuning seed (below {FRESH_SEEDS_FROM}, or {TUNING_SEEDS[-1]})")
+            raise SystemExit(f"--seeds: {tuned[0]} is a tuning seed (below {FRESH_SEEDS_FROM}, or one of "
+                             f"{seed_ranges(TUNING_SEEDS)})")
     else:
         seeds = fresh_seeds(count)
     base = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="preflags-quality-"))
