@@ -302,20 +302,33 @@ def _compare(a: dict, b: dict) -> dict:
             "novel_ssim_fg": paired(a["per_subject_novel_ssim_fg"], b["per_subject_novel_ssim_fg"])}
 
 
+def _kinds(defects) -> dict[str, int]:
+    """{defect class: subjects carrying it} of an iterable of per-subject defect lists."""
+    kinds = {}
+    for d in defects:
+        for k in d:
+            kinds[k] = kinds.get(k, 0) + 1
+    return dict(sorted(kinds.items()))
+
+
 def curation_counts(study: Study) -> dict | None:
-    """How many subjects the curation dataset has, how many carry injected defects, and what auto flagged."""
+    """How many subjects the curation dataset has, how many carry injected defects, what auto flagged, and
+    what each curation arm whose manifest is written trains on (subjects, defective ones, by class)."""
     root = study.out / "defects"
     if not (root / "preflags.json").exists():
         return None
     truth = injected_defects(root)
     flagged = {r["subject"] for r in json.loads((root / "preflags.json").read_text())["subjects"] if r["flags"]}
     bad = {s for s, d in truth.items() if d}
-    kinds = {}
-    for d in truth.values():
-        for k in d:
-            kinds[k] = kinds.get(k, 0) + 1
+    training = {}
+    for arm in CURATION_ARMS:
+        manifest = study.out / "manifests" / f"curation-{arm}.json"
+        if manifest.exists():
+            train = [r["subject"] for r in json.loads(manifest.read_text())["subjects"] if r["split"] == "train"]
+            training[f"curation-{arm}"] = {"subjects": len(train), "defective": sum(1 for s in train if truth[s]),
+                                           "defect_types": _kinds(truth[s] for s in train)}
     return {"subjects": len(truth), "defective": len(bad), "flagged": len(flagged),
-            "flagged_defective": len(flagged & bad), "defect_types": kinds}
+            "flagged_defective": len(flagged & bad), "defect_types": _kinds(truth.values()), "training": training}
 
 
 # -- the report ---------------------------------------------------------------------------------------------
@@ -379,6 +392,12 @@ def markdown(res: dict, plotted: bool) -> str:
         lines += ["", f"Curation dataset: {c['subjects']} subjects, {c['defective']} with injected defects "
                       f"({', '.join(f'{k} {v}' for k, v in sorted(c['defect_types'].items()))}); `label-tool auto` "
                       f"flagged {c['flagged']}, {c['flagged_defective']} of them defective."]
+        if c["training"]:
+            lines += ["", "What each curation arm trains on:", ""]
+            lines += table(["arm", "training subjects", "with an injected defect", "by class"],
+                           [[a, t["subjects"], t["defective"],
+                             ", ".join(f"{k} {v}" for k, v in t["defect_types"].items()) or "-"]
+                            for a, t in c["training"].items()])
     lines += ["", "## Defects the models draw", "",
               "`label-tool auto --false-alarm-rate 0` (every detector at its own threshold) on each arm's "
               "reconstructions of the held-out subjects, rendered from all 32 of their cameras "

@@ -55,6 +55,12 @@ def test_a_toy_study_runs_every_arm_and_resumes(tmp_path, monkeypatch):
     assert arms["curation-as-is"]["train_subjects"] == 16
     assert arms["curation-truth"]["train_subjects"] == 16 - c["defective"]
     assert arms["curation-auto"]["train_subjects"] == arms["curation-random"]["train_subjects"] == 16 - c["flagged"]
+    trained = c["training"]
+    assert {a: t["subjects"] for a, t in trained.items()} == {a: r["train_subjects"] for a, r in arms.items()
+                                                              if a.startswith("curation-")}
+    assert trained["curation-as-is"]["defective"] == c["defective"] and trained["curation-truth"]["defective"] == 0
+    assert trained["curation-auto"]["defective"] == c["defective"] - c["flagged_defective"]
+    assert sum(trained["curation-as-is"]["defect_types"].values()) >= c["defective"]
     assert all(r["steps"] == 2 and r["defects"]["subjects"] == 4 for r in arms.values())
     assert "scale-16 - scale-8" in res["comparisons"]
     assert (reports / "data_value_scale.png").exists() and (reports / "data_value_scale-8.png").exists()
