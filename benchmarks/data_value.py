@@ -390,7 +390,7 @@ def markdown(res: dict, plotted: bool) -> str:
     if res["curation"]:
         c = res["curation"]
         lines += ["", f"Curation dataset: {c['subjects']} subjects, {c['defective']} with injected defects "
-                      f"({', '.join(f'{k} {v}' for k, v in sorted(c['defect_types'].items()))}); `label-tool auto` "
+                      f"({', '.join(f'{k} {v}' for k, v in c['defect_types'].items())}); `label-tool auto` "
                       f"flagged {c['flagged']}, {c['flagged_defective']} of them defective."]
         if c["training"]:
             lines += ["", "What each curation arm trains on:", ""]
