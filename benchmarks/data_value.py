@@ -68,6 +68,8 @@ def console(command: str, *argv: str, cwd: Path, log: Path | None = None) -> flo
 class Study:
     """The study's folder: datasets, manifests and runs, each stage done once."""
 
+    held_out_seed, pool_seed = HELD_OUT_SEED, POOL_SEED
+
     def __init__(self, args):
         self.args, self.out = args, args.out.resolve()
         self.out.mkdir(parents=True, exist_ok=True)
@@ -83,7 +85,7 @@ class Study:
         return root
 
     def held_out(self) -> tuple[Path, Path]:
-        root = self.dataset("held-out", self.args.held_out + COLOUR_SUBJECTS, HELD_OUT_SEED)
+        root = self.dataset("held-out", self.args.held_out + COLOUR_SUBJECTS, self.held_out_seed)
         manifest = self.out / "manifests" / "held-out.json"
         if not manifest.exists():
             console("label-tool", "compile", "held-out", "--labels", "labels", "--test-count",
@@ -96,7 +98,7 @@ class Study:
         if kind == "scale":
             n, largest = int(what), max(self.args.scale)
             smallest = n == min(self.args.scale)  # its own small dataset, so it need not wait for the largest
-            root = self.dataset(f"pool-{n if smallest else largest}", n if smallest else largest, POOL_SEED)
+            root = self.dataset(f"pool-{n if smallest else largest}", n if smallest else largest, self.pool_seed)
             return root, _subjects(root)[:n]
         root = self.dataset("defects", self.args.curation_subjects, DEFECT_SEED, self.args.defect_rate)
         everyone = _subjects(root)
@@ -143,13 +145,15 @@ class Study:
         return path
 
     # -- training and evaluation -------------------------------------------------------------------------
-    def run_arm(self, arm: str) -> None:
+    def run_arm(self, arm: str, options: tuple[str, ...] = ()) -> None:
+        """Train ``arm`` on its data (:meth:`arm_data`) with the study's steps and batch and ``options``
+        (more `panolam train` options), then score it."""
         root, train = self.arm_data(arm)
         held_out, held_out_manifest = self.held_out()
         manifest = self.manifest(arm, root, train)
         run = self.out / "runs" / arm
         if _steps_done(run) < self.args.steps:
-            resume = ["--resume", str(run)] if (run / "checkpoint.pt").exists() else ["--out", str(run)]
+            resume = ["--resume", str(run)] if (run / "checkpoint.pt").exists() else ["--out", str(run), *options]
             peak = console("panolam", "train", "--data", str(root), "--manifest", str(manifest), "--config", "tiny",
                            "--steps", str(self.args.steps), "--batch-size", str(self.args.batch_size),
                            "--no-progress", "--checkpoint-every", "50", *resume, cwd=self.out,
@@ -229,39 +233,42 @@ def _report_order(arm: str) -> tuple[int, int]:
     return (0, int(what)) if kind == "scale" else (1, CURATION_ARMS.index(what))
 
 
+def arm_figures(study: Study, arm: str) -> dict | None:
+    """The figures of one arm whose held-out evaluation is done (None before)."""
+    run = study.out / "runs" / arm
+    ev_path = run / "eval-held-out" / "eval.json"
+    if not ev_path.exists():
+        return None
+    ev = json.loads(ev_path.read_text())
+    train_ev = json.loads((run / "eval-train" / "eval.json").read_text()) \
+        if (run / "eval-train" / "eval.json").exists() else None
+    steps = _log_steps(run)
+    tail = steps[-LOG_TAIL:]
+    manifest = json.loads((study.out / "manifests" / f"{arm}.json").read_text())
+    return {
+        "train_subjects": sum(1 for r in manifest["subjects"] if r["split"] == "train"),
+        "steps": steps[-1]["step"] if steps else 0,
+        "step_s_median": float(np.median([r["seconds"] for r in steps])) if steps else None,
+        "data_s_median": float(np.nanmedian([r["data_s"] for r in steps])) if steps else None,
+        "train_batch_psnr": float(np.mean([r["psnr"] for r in tail])) if tail else None,
+        "train_peak_rss_mib": json.loads((run / "peak-rss-mib.json").read_text())
+        if (run / "peak-rss-mib.json").exists() else None,
+        "held_out": {v: {m: ev["per_view"][v][m] for m in ("psnr", "psnr_fg", "ssim", "ssim_fg", "lpips")}
+                     for v in ("all", "novel")},
+        "train_subjects_eval": None if train_ev is None else
+        {v: {m: train_ev["per_view"][v][m] for m in ("psnr", "psnr_fg", "ssim_fg")} for v in ("all", "novel")},
+        "per_subject_novel_psnr_fg": per_subject(ev),
+        "per_subject_novel_ssim_fg": per_subject(ev, "ssim_fg"),
+        "template_per_subject_novel_psnr_fg": per_subject(ev["baselines"]["mean_colour_template"])
+        if "baselines" in ev else None,
+        "csim": ev["per_view"]["front"].get("csim"),
+        "defects": _defect_rates(run / "renders-held-out" / "preflags.json", set(per_subject(ev))),
+    }
+
+
 def collect(study: Study) -> dict:
     """The figures of every finished arm in the study's folder."""
-    arms = {}
-    for arm in sorted(study.args.arms, key=_report_order):
-        run = study.out / "runs" / arm
-        ev_path = run / "eval-held-out" / "eval.json"
-        if not ev_path.exists():
-            continue
-        ev = json.loads(ev_path.read_text())
-        train_ev = json.loads((run / "eval-train" / "eval.json").read_text()) \
-            if (run / "eval-train" / "eval.json").exists() else None
-        steps = _log_steps(run)
-        tail = steps[-LOG_TAIL:]
-        manifest = json.loads((study.out / "manifests" / f"{arm}.json").read_text())
-        arms[arm] = {
-            "train_subjects": sum(1 for r in manifest["subjects"] if r["split"] == "train"),
-            "steps": steps[-1]["step"] if steps else 0,
-            "step_s_median": float(np.median([r["seconds"] for r in steps])) if steps else None,
-            "data_s_median": float(np.nanmedian([r["data_s"] for r in steps])) if steps else None,
-            "train_batch_psnr": float(np.mean([r["psnr"] for r in tail])) if tail else None,
-            "train_peak_rss_mib": json.loads((run / "peak-rss-mib.json").read_text())
-            if (run / "peak-rss-mib.json").exists() else None,
-            "held_out": {v: {m: ev["per_view"][v][m] for m in ("psnr", "psnr_fg", "ssim", "ssim_fg", "lpips")}
-                         for v in ("all", "novel")},
-            "train_subjects_eval": None if train_ev is None else
-            {v: {m: train_ev["per_view"][v][m] for m in ("psnr", "psnr_fg", "ssim_fg")} for v in ("all", "novel")},
-            "per_subject_novel_psnr_fg": per_subject(ev),
-            "per_subject_novel_ssim_fg": per_subject(ev, "ssim_fg"),
-            "template_per_subject_novel_psnr_fg": per_subject(ev["baselines"]["mean_colour_template"])
-            if "baselines" in ev else None,
-            "csim": ev["per_view"]["front"].get("csim"),
-            "defects": _defect_rates(run / "renders-held-out" / "preflags.json", set(per_subject(ev))),
-        }
+    arms = {a: f for a in sorted(study.args.arms, key=_report_order) if (f := arm_figures(study, a))}
     comparisons = {}
     scale = [a for a in arms if a.startswith("scale-")]  # by size: arms are in _report_order
     for a in scale[1:]:
@@ -281,7 +288,7 @@ def collect(study: Study) -> dict:
     held_out = set(next(iter(arms.values()))["per_subject_novel_psnr_fg"]) if arms else set()
     return {"machine": machine_info(), "held_out_defects": _defect_rates(truth_flags, held_out), "settings": {k: (str(v) if isinstance(v, Path) else v)
                                                     for k, v in vars(study.args).items()},
-            "seeds": {"held_out": HELD_OUT_SEED, "pool": POOL_SEED, "defects": DEFECT_SEED},
+            "seeds": {"held_out": study.held_out_seed, "pool": study.pool_seed, "defects": DEFECT_SEED},
             "arms": arms, "comparisons": comparisons, "curation": curation_counts(study)}
 
 
@@ -332,7 +339,8 @@ def curation_counts(study: Study) -> dict | None:
 
 
 # -- the report ---------------------------------------------------------------------------------------------
-def _ci(c: dict) -> str:
+def ci_text(c: dict) -> str:
+    """A paired difference as '+0.80 dB [+0.39, +1.22] (n=48)'."""
     return f"{c['mean']:+.2f} dB [{c['ci95'][0]:+.2f}, {c['ci95'][1]:+.2f}] (n={c['n']})"
 
 
@@ -385,7 +393,7 @@ def markdown(res: dict, plotted: bool) -> str:
                     "training peak RSS MiB"], rows)
     lines += ["", "## Paired differences on the held-out subjects", ""]
     lines += table(["comparison", "novel PSNR fg", "novel SSIM fg"],
-                   [[k, _ci(v["novel_psnr_fg"]), f"{v['novel_ssim_fg']['mean']:+.3f}" if "novel_ssim_fg" in v else "-"]
+                   [[k, ci_text(v["novel_psnr_fg"]), f"{v['novel_ssim_fg']['mean']:+.3f}" if "novel_ssim_fg" in v else "-"]
                     for k, v in res["comparisons"].items()])
     if res["curation"]:
         c = res["curation"]

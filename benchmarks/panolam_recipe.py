@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import shutil
 import subprocess
 import sys
@@ -50,7 +51,8 @@ def measure(args) -> dict:
         shutil.rmtree(out / "runs")
     load = {"before_training": list(os.getloadavg())}
     run("panolam", "train", "--data", "data", "--manifest", "manifest.json", "--config", "tiny", "--out", "runs/r1",
-        "--time-limit", str(args.time_limit), *(["--steps", str(args.steps)] if args.steps else []), cwd=out)
+        "--time-limit", str(args.time_limit), *(["--steps", str(args.steps)] if args.steps else []),
+        *shlex.split(args.train_options), cwd=out)
     load["after_training"] = list(os.getloadavg())
     run("panolam", "eval", "--data", "data", "--manifest", "manifest.json", "--split", "test", "--ckpt", "runs/r1",
         cwd=out)
@@ -67,7 +69,8 @@ def collect(out: Path, args) -> dict:
     figures = {name: {view: {m: r["per_view"][view][m] for m in ("psnr", "psnr_fg", "ssim", "ssim_fg")}
                       for view in ("all", "novel")} for name, r in models.items()}
     return {"machine": machine_info(), "seed": args.seed, "subjects": args.subjects, "test_count": args.test_count,
-            "time_limit_s": args.time_limit, "steps": args.steps, "steps_done": len(steps),
+            "time_limit_s": args.time_limit, "steps": args.steps, "train_options": args.train_options,
+            "steps_done": len(steps),
             "last_step": steps[-1] if steps else None,
             "load_average": load, "figures": figures, "eval_subjects": ev["subjects"],
             "reconstruct_s_median": ev["reconstruct_s_median"]}
@@ -103,7 +106,8 @@ def markdown(res: dict) -> str:
         "--workers 2",
         f"label-tool compile data --labels labels --test-count {res['test_count']} --out manifest.json",
         f"panolam train --data data --manifest manifest.json --config tiny --out runs/r1 --time-limit {res['time_limit_s']}"
-        + (f" --steps {res['steps']}" if res.get("steps") else ""),
+        + (f" --steps {res['steps']}" if res.get("steps") else "")
+        + (f" {res['train_options']}" if res.get("train_options") else ""),
         "panolam eval --data data --manifest manifest.json --split test --ckpt runs/r1",
         "```", "",
         f"Training did {res['steps_done']} steps in the time limit (at most {res.get('steps') or 2000:,}; the "
@@ -132,6 +136,8 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=7)
     parser.add_argument("--time-limit", type=int, default=1200, help="seconds of training")
     parser.add_argument("--steps", type=int, help="panolam train --steps (default: not passed, so 2,000)")
+    parser.add_argument("--train-options", default="", help="more panolam train options, as one string "
+                                                             "(e.g. '--lr-floor 0.9')")
     parser.add_argument("--report", default="panolam_recipe", help="report name under benchmarks/reports")
     parser.add_argument("--report-only", action="store_true", help="the report from the run already in --out")
     args = parser.parse_args(argv)
