@@ -272,12 +272,12 @@ def collect(study: Study) -> dict:
     comparisons = {}
     scale = [a for a in arms if a.startswith("scale-")]  # by size: arms are in _report_order
     for a in scale[1:]:
-        comparisons[f"{a} - {scale[0]}"] = _compare(arms[a], arms[scale[0]])
+        comparisons[f"{a} - {scale[0]}"] = compare(arms[a], arms[scale[0]])
     for smaller, larger in zip(scale[1:], scale[2:]):  # each size against the one below it
-        comparisons[f"{larger} - {smaller}"] = _compare(arms[larger], arms[smaller])
+        comparisons[f"{larger} - {smaller}"] = compare(arms[larger], arms[smaller])
     for a, b in (("auto", "as-is"), ("auto", "random"), ("truth", "as-is"), ("random", "as-is")):
         if f"curation-{a}" in arms and f"curation-{b}" in arms:
-            comparisons[f"curation-{a} - curation-{b}"] = _compare(arms[f"curation-{a}"], arms[f"curation-{b}"])
+            comparisons[f"curation-{a} - curation-{b}"] = compare(arms[f"curation-{a}"], arms[f"curation-{b}"])
     for name, r in arms.items():
         if r["template_per_subject_novel_psnr_fg"]:
             comparisons[f"{name} - mean-colour template"] = {
@@ -304,7 +304,8 @@ def _defect_rates(report: Path, subjects: set[str]) -> dict | None:
     return {"subjects": len(rows), "flagged": sum(1 for r in rows if r["flags"]), "per_detector": per}
 
 
-def _compare(a: dict, b: dict) -> dict:
+def compare(a: dict, b: dict) -> dict:
+    """Paired differences a - b of two arms' figures: novel-view foreground PSNR and SSIM."""
     return {"novel_psnr_fg": paired(a["per_subject_novel_psnr_fg"], b["per_subject_novel_psnr_fg"]),
             "novel_ssim_fg": paired(a["per_subject_novel_ssim_fg"], b["per_subject_novel_ssim_fg"])}
 
@@ -417,17 +418,26 @@ def markdown(res: dict, plotted: bool) -> str:
                     for name, d in rated if d])
     if plotted:
         lines += ["", "![novel-view foreground PSNR against training subjects](data_value_scale.png)"]
-    for name in arms:
-        lines += ["", f"### {name}", "", f"![{name}: input, reconstruction and truth from the front, left, back "
-                                         f"and right](data_value_{name}.png)"]
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + galleries(arms, "data_value")) + "\n"
+
+
+def galleries(arms, report: str) -> list[str]:
+    """Markdown lines: a section per arm with its gallery ``<report>_<arm>.png``."""
+    return [line for name in arms for line in
+            ("", f"### {name}", "", f"![{name}: input, reconstruction and truth from the front, left, back and "
+                                    f"right]({report}_{name}.png)")]
+
+
+def study_options(parser: argparse.ArgumentParser, out: str, steps: int) -> None:
+    """The options every study of arms has: its work folder, and the steps and batch of every arm."""
+    parser.add_argument("--out", type=Path, default=Path(out), help="work folder")
+    parser.add_argument("--steps", type=int, default=steps, help="training steps of every arm")
+    parser.add_argument("--batch-size", type=int, default=2, help="subjects per step of every arm")
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", type=Path, default=Path("benchmarks/out/data-value"), help="work folder")
-    parser.add_argument("--steps", type=int, default=1500, help="training steps of every arm")
-    parser.add_argument("--batch-size", type=int, default=2, help="subjects per step of every arm")
+    study_options(parser, "benchmarks/out/data-value", 1500)
     parser.add_argument("--scale", type=int, nargs="+", default=[48, 500, 3000], help="subjects of the scale arms")
     parser.add_argument("--held-out", type=int, default=48, help="held-out subjects (clean, fresh seed)")
     parser.add_argument("--curation-subjects", type=int, default=500)

@@ -49,9 +49,7 @@ class TuningStudy(data_value.Study):
 def collect(study: TuningStudy) -> dict:
     arms = {a: dict(f, options=list(CANDIDATES[a][2])) for a in study.args.arms
             if (f := data_value.arm_figures(study, a))}
-    comparisons = {f"{a} - {b}": data_value.paired(arms[a]["per_subject_novel_psnr_fg"],
-                                                   arms[b]["per_subject_novel_psnr_fg"])
-                   for a, b in COMPARISONS if a in arms and b in arms}
+    comparisons = {f"{a} - {b}": data_value.compare(arms[a], arms[b]) for a, b in COMPARISONS if a in arms and b in arms}
     best = max(arms, key=lambda a: arms[a]["held_out"]["novel"]["psnr_fg"]) if arms else None
     return {"machine": machine_info(), "seeds": {"held_out": study.held_out_seed, "pool": study.pool_seed},
             "settings": {"steps": study.args.steps, "batch_size": study.args.batch_size,
@@ -80,20 +78,15 @@ def markdown(res: dict) -> str:
                      f"{r['step_s_median']:.2f}"] for a, r in arms.items()])
     if res["comparisons"]:
         lines += ["", "## Paired differences on the held-out subjects (novel-view foreground PSNR)", ""]
-        lines += table(["comparison", "difference"], [[k, data_value.ci_text(v)] for k, v in res["comparisons"].items()])
+        lines += table(["comparison", "difference"], [[k, data_value.ci_text(v["novel_psnr_fg"])] for k, v in res["comparisons"].items()])
     if res["best"]:
         lines += ["", f"Highest held-out novel-view foreground PSNR: **{res['best']}**."]
-    for a in arms:
-        lines += ["", f"### {a}", "", f"![{a}: input, reconstruction and truth from the front, left, back and right]"
-                                     f"(recipe_tuning_{a}.png)"]
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + data_value.galleries(arms, "recipe_tuning")) + "\n"
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", type=Path, default=Path("benchmarks/out/recipe-tuning"), help="work folder")
-    parser.add_argument("--steps", type=int, default=600, help="training steps of every candidate")
-    parser.add_argument("--batch-size", type=int, default=2, help="subjects per step of every candidate")
+    data_value.study_options(parser, "benchmarks/out/recipe-tuning", 600)
     parser.add_argument("--held-out", type=int, default=48, help="held-out subjects (clean)")
     parser.add_argument("--candidates", nargs="+", choices=list(CANDIDATES), default=list(CANDIDATES),
                         help="candidates to run, in this order")

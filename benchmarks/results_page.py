@@ -198,6 +198,19 @@ def panolam_recipe(d: dict) -> list[str]:
             + ", after " + num(d["load_average"]["after_training"][0]) + "."]
 
 
+def study_of_arms(d: dict) -> list[str]:
+    """A study of arms at equal steps (data_value, recipe_tuning): each arm's figures, then its paired differences."""
+    s = d["settings"]
+    lines = [f"Every arm `tiny`, {s['steps']} steps of batch {s['batch_size']}; scored on {s['held_out']} held-out "
+             f"subjects of seed {d['seeds']['held_out']} (novel views, foreground PSNR)."]
+    lines += [f"{name}: {r['train_subjects']} training subjects, held-out {num(r['held_out']['novel']['psnr_fg'])} dB "
+              f"(full frame {num(r['held_out']['all']['psnr'])} dB), training batches {num(r['train_batch_psnr'])} dB, "
+              f"{num(r['step_s_median'])} s a step." for name, r in d["arms"].items()]
+    lines += [f"{name}: {c['novel_psnr_fg']['mean']:+.2f} dB, 95 % interval {c['novel_psnr_fg']['ci95'][0]:+.2f} to "
+              f"{c['novel_psnr_fg']['ci95'][1]:+.2f}." for name, c in d["comparisons"].items()]
+    return lines
+
+
 def panolam_training(d: dict) -> list[str]:
     base = {name: b["per_view"]["all"]["psnr"] for name, b in d["baselines"].items()}
     main = d["final"]["main"]
@@ -267,12 +280,12 @@ READERS: dict[str, Callable[[dict], list[str]]] = {
     "preflags_speed": preflags_speed, "gui_latency": gui_latency, "panolam_recipe": panolam_recipe,
     "panolam_training": panolam_training, "speed_vs_error": speed_vs_error, "model_speed": model_speed,
     "train_step": train_step, "rasterizer_speed": rasterizer_speed, "rasterizer_constants": rasterizer_constants,
-    "threads": threads}
+    "threads": threads, "data_value": study_of_arms, "recipe_tuning": study_of_arms}
 
 # The page's order: stems (and the variants that start with them) by what they measure.
 GROUPS = {"Data generation": ["datagen_speed", "procedural_people", "gan_speed", "gan_fullsize", "shape_speed"],
           "Curation": ["preflags_quality", "preflags_tuning", "preflags_speed", "gui_latency"],
-          "PanoLAM": ["panolam_recipe", "panolam_training", "speed_vs_error", "model_speed", "train_step",
+          "PanoLAM": ["panolam_recipe", "recipe_tuning", "data_value", "panolam_training", "speed_vs_error", "model_speed", "train_step",
                       "rasterizer_speed", "rasterizer_constants"],
           "Machine": ["threads"]}
 

@@ -70,6 +70,18 @@ def tiny_dataset(tmp_path_factory):
 # -- helpers that write official-format pickles ------------------------------------------------------
 
 @pytest.fixture
+def toy_study_reports(tmp_path, monkeypatch):
+    """A reports folder for a study of arms (benchmarks.data_value and what reuses its stages) at toy
+    size: 64 px datasets, 4 training subjects scored; the caller points its module's REPORTS here."""
+    from benchmarks import data_value
+    reports = tmp_path / "reports"
+    reports.mkdir()
+    monkeypatch.setattr(data_value, "TRAIN_EVAL_SUBJECTS", 4)
+    monkeypatch.setattr(data_value, "RESOLUTION", 64)
+    return reports
+
+
+@pytest.fixture
 def persistence_module(monkeypatch):
     """A stand-in 'torch_utils.persistence' so tests can write pickles in the official format."""
     pkg, mod = types.ModuleType("torch_utils"), types.ModuleType("torch_utils.persistence")

@@ -38,12 +38,9 @@ def test_step_lines_are_read_with_and_without_the_data_time(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.timeout(3600)  # about 5 minutes on 2 idle cores: 6 arms, 4 datasets
-def test_a_toy_study_runs_every_arm_and_resumes(tmp_path, monkeypatch):
-    reports = tmp_path / "reports"
-    reports.mkdir()
+def test_a_toy_study_runs_every_arm_and_resumes(tmp_path, monkeypatch, toy_study_reports):
+    reports = toy_study_reports
     monkeypatch.setattr(data_value, "REPORTS", reports)
-    monkeypatch.setattr(data_value, "TRAIN_EVAL_SUBJECTS", 4)
-    monkeypatch.setattr(data_value, "RESOLUTION", 64)
     argv = ["--out", str(tmp_path / "study"), "--steps", "2", "--scale", "8", "16", "--held-out", "4",
             "--curation-subjects", "16"]
     assert data_value.main(argv) == 0

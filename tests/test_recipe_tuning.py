@@ -28,12 +28,9 @@ def test_candidates_are_training_options_that_differ_only_in_what_a_step_does_no
 
 @pytest.mark.slow
 @pytest.mark.timeout(3600)  # a few minutes on 2 idle cores: 3 candidates, 3 datasets
-def test_a_toy_tuning_study_scores_and_compares_the_candidates(tmp_path, monkeypatch):
-    reports = tmp_path / "reports"
-    reports.mkdir()
+def test_a_toy_tuning_study_scores_and_compares_the_candidates(tmp_path, monkeypatch, toy_study_reports):
+    reports = toy_study_reports
     monkeypatch.setattr(recipe_tuning, "REPORTS", reports)
-    monkeypatch.setattr(data_value, "TRAIN_EVAL_SUBJECTS", 4)
-    monkeypatch.setattr(data_value, "RESOLUTION", 64)
     small = {a: (what, 8 if n == 48 else 12, options) for a, (what, n, options) in recipe_tuning.CANDIDATES.items()}
     monkeypatch.setattr(recipe_tuning, "CANDIDATES", small)
     argv = ["--out", str(tmp_path / "tuning"), "--steps", "2", "--held-out", "4",
@@ -43,7 +40,7 @@ def test_a_toy_tuning_study_scores_and_compares_the_candidates(tmp_path, monkeyp
     assert list(res["arms"]) == ["readme", "subjects-500", "lr-8e-4"]
     assert [r["train_subjects"] for r in res["arms"].values()] == [8, 12, 12]
     assert set(res["comparisons"]) == {"subjects-500 - readme", "lr-8e-4 - readme"}
-    assert all(c["n"] == 4 for c in res["comparisons"].values())
+    assert all(c["novel_psnr_fg"]["n"] == 4 for c in res["comparisons"].values())
     assert res["best"] in res["arms"] and (reports / "recipe_tuning_lr-8e-4.png").exists()
     trained = read_checkpoint(tmp_path / "tuning" / "runs" / "lr-8e-4")["train_config"]
     assert trained["lr"] == 8e-4 and trained["lr_floor"] == 0.9 and trained["steps"] == 2
