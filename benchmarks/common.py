@@ -35,10 +35,17 @@ REPORTS = HERE / "reports"
 
 def machine_info() -> dict:
     """CPU, software versions, torch threads, git revision, load average and date of a measurement."""
-    models = [line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-              if line.startswith("model name")] if Path("/proc/cpuinfo").exists() else []
+    cpu = {}  # the first processor's /proc/cpuinfo fields
+    for line in Path("/proc/cpuinfo").read_text().splitlines() if Path("/proc/cpuinfo").exists() else []:
+        key, _, value = line.partition(":")
+        if not key.strip():
+            break
+        cpu.setdefault(key.strip(), value.strip())
     usable = usable_cpus()
-    return {"cpu_model": models[0] if models else platform.processor() or "unknown", "cpu_count": os.cpu_count(),
+    return {"cpu_model": cpu.get("model name") or platform.processor() or "unknown",
+            # hosts sold under one name differ: the family/model and the vector instructions torch uses tell them apart
+            "cpu_family_model": f"family {cpu['cpu family']} model {cpu['model']}" if "cpu family" in cpu else None,
+            "cpu_capability": torch.backends.cpu.get_cpu_capability(), "cpu_count": os.cpu_count(),
             "usable_cpus": usable, "platform": platform.platform(), "python": platform.python_version(),
             "numpy": np.__version__, "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
             "torch_interop_threads": torch.get_num_interop_threads(),

@@ -322,7 +322,8 @@ def machine_line(d: dict) -> str:
     m = machine_of(d)
     if not m:
         return "Machine: not recorded."
-    parts = [m.get("cpu_model", "unknown CPU"),
+    host = ", ".join(m[k] for k in ("cpu_family_model", "cpu_capability") if m.get(k))
+    parts = [m.get("cpu_model", "unknown CPU") + (f" ({host})" if host else ""),
              f"{m.get('usable_cpus', m.get('cpu_count'))} usable CPUs", f"torch {m.get('torch', '?')}"]
     if m.get("torch_threads") is not None:
         parts.append(f"torch threads {m['torch_threads']}")

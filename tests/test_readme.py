@@ -127,3 +127,14 @@ def test_results_page_names_a_broken_report(tmp_path, monkeypatch):
     assert "Seeds: 5." in "\n".join(results_page.section("good"))
     with pytest.raises(SystemExit, match="broken.json: not valid JSON"):
         results_page.build()
+
+
+def test_reports_tell_hosts_of_one_cpu_name_apart():
+    import torch
+
+    from benchmarks.common import machine_info
+    m = machine_info()
+    assert m["cpu_capability"] and m["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
+    line = results_page.machine_line({"machine": {"cpu_model": "AMD EPYC", "usable_cpus": 2, "cpu_capability": "AVX2",
+                                                  "cpu_family_model": "family 23 model 1"}})
+    assert line.startswith("Machine: AMD EPYC (family 23 model 1, AVX2), 2 usable CPUs")
