@@ -145,19 +145,24 @@ class Study:
         return path
 
     # -- training and evaluation -------------------------------------------------------------------------
-    def run_arm(self, arm: str, options: tuple[str, ...] = ()) -> None:
-        """Train ``arm`` on its data (:meth:`arm_data`) with the study's steps and batch and ``options``
-        (more `panolam train` options), then score it."""
+    def training(self, arm: str) -> tuple[int, list[str]]:
+        """The steps of ``arm`` and the `panolam train` options a new run of it starts with: here the study's
+        steps and `tiny` for every arm."""
+        return self.args.steps, ["--config", "tiny"]
+
+    def run_arm(self, arm: str) -> None:
+        """Train ``arm`` on its data (:meth:`arm_data`) as :meth:`training` says, with the study's batch, then
+        score it."""
         root, train = self.arm_data(arm)
         held_out, held_out_manifest = self.held_out()
         manifest = self.manifest(arm, root, train)
         run = self.out / "runs" / arm
-        if _steps_done(run) < self.args.steps:
+        steps, options = self.training(arm)
+        if _steps_done(run) < steps:
             resume = ["--resume", str(run)] if (run / "checkpoint.pt").exists() else ["--out", str(run), *options]
-            peak = console("panolam", "train", "--data", str(root), "--manifest", str(manifest), "--config", "tiny",
-                           "--steps", str(self.args.steps), "--batch-size", str(self.args.batch_size),
-                           "--no-progress", "--checkpoint-every", "50", *resume, cwd=self.out,
-                           log=self.out / f"{arm}.log")
+            peak = console("panolam", "train", "--data", str(root), "--manifest", str(manifest), "--steps", str(steps),
+                           "--batch-size", str(self.args.batch_size), "--no-progress", "--checkpoint-every", "50",
+                           *resume, cwd=self.out, log=self.out / f"{arm}.log")
             memory = run / "peak-rss-mib.json"  # the largest of the training processes (one per resume)
             earlier = json.loads(memory.read_text()) if memory.exists() else 0.0
             memory.write_text(json.dumps(max(earlier, peak)))

@@ -1,37 +1,45 @@
 """Which training recipe the README gives: candidate recipes trained for what a time budget buys, on tuning seeds.
 
-    python -m benchmarks.recipe_tuning --out DIR                # 5 candidates of 300 steps; resumes
+    python -m benchmarks.recipe_tuning --out DIR                # 6 candidates, 300 steps of tiny each; resumes
     python -m benchmarks.recipe_tuning --out DIR --report-only  # the report from what is finished
 
-The candidates differ in the dataset's size and the learning rate's settings, not in what a step
-costs, so equal steps are equal time: each trains `tiny` for ``--steps`` steps of batch 2 (300 is
-what 20 minutes buy on 2 idle cores of a host at 4.2 s a step; a faster one did 600), which lets
-them run side by side on a busy machine. They are scored like the data study's arms (:mod:`benchmarks.data_value`, whose
-stages this reuses): 48 clean held-out subjects, novel views, foreground PSNR, paired differences
-with 95 % intervals, the full-frame PSNR beside. The seeds here are tuning seeds: the recipe is
-chosen on them, and the figures the README quotes for it come from :mod:`benchmarks.panolam_recipe`
-on a seed of its own. Writes ``benchmarks/reports/recipe_tuning.{md,json}`` and a gallery per
-candidate.
+Each candidate trains for the same CPU time: ``--steps`` steps of batch 2 of `tiny` (300 is what
+20 minutes buy on 2 idle cores of a host at 4.2 s a step; a faster one did 600), or the steps of
+its config that cost as much, from CPU seconds per step measured side by side before training.
+Counting steps rather than seconds lets candidates run side by side on a busy machine. They are
+scored like the data study's arms (:mod:`benchmarks.data_value`, whose stages this reuses): 48
+clean held-out subjects, novel views, foreground PSNR, paired differences with 95 % intervals, the
+full-frame PSNR beside. The seeds here are tuning seeds: the recipe is chosen on them, and the
+figures the README quotes for it come from :mod:`benchmarks.panolam_recipe` on a seed of its own.
+Writes ``benchmarks/reports/recipe_tuning.{md,json}`` and a gallery per candidate.
 """
 from __future__ import annotations
 
 import argparse
+import json
 import shutil
+import statistics
 import sys
 from pathlib import Path
 
 from benchmarks import data_value
 from benchmarks.common import REPORTS, machine_info, table, write_report
+from datagen.files import atomic_write
 
 TUNING_HELD_OUT_SEED, TUNING_POOL_SEED = 8807, 8808  # the recipe is chosen on these; never reported as its figure
-# Each candidate adds one change to the one before it. name: (the change, training subjects, `panolam train` options)
+BASE_CONFIG = "tiny"
+# Each candidate adds one change to the one before it.
+# name: (the change, training subjects, --config, more `panolam train` options)
 CANDIDATES = {
     "readme": ("the README's recipe until now: 48 subjects; peak rate 4e-4 after 100 warm-up steps, cosine decay "
-               "to 10 % of it", 48, ()),
-    "subjects-500": ("500 subjects", 500, ()),
-    "floor-0.9": ("+ the decay ends at 90 % of the peak rate", 500, ("--lr-floor", "0.9")),
-    "warmup-30": ("+ 30 warm-up steps", 500, ("--lr-floor", "0.9", "--warmup-steps", "30")),
-    "lr-8e-4": ("+ twice the peak rate (8e-4)", 500, ("--lr-floor", "0.9", "--warmup-steps", "30", "--lr", "8e-4")),
+               "to 10 % of it", 48, BASE_CONFIG, ()),
+    "subjects-500": ("500 subjects", 500, BASE_CONFIG, ()),
+    "floor-0.9": ("+ the decay ends at 90 % of the peak rate", 500, BASE_CONFIG, ("--lr-floor", "0.9")),
+    "warmup-30": ("+ 30 warm-up steps", 500, BASE_CONFIG, ("--lr-floor", "0.9", "--warmup-steps", "30")),
+    "lr-8e-4": ("+ twice the peak rate (8e-4)", 500, BASE_CONFIG,
+                ("--lr-floor", "0.9", "--warmup-steps", "30", "--lr", "8e-4")),
+    "cross-only": ("+ point tokens attend to the image only (the paper's blocks), more steps in the same time", 500,
+                   f"{BASE_CONFIG}+cross_only", ("--lr-floor", "0.9", "--warmup-steps", "30", "--lr", "8e-4")),
 }
 BASELINE = "readme"
 # each change against the candidate it adds to, then each candidate against the README's recipe
@@ -40,23 +48,67 @@ COMPARISONS = (*zip(list(CANDIDATES)[1:], CANDIDATES),
 
 
 class TuningStudy(data_value.Study):
-    """The data study's stages on the tuning seeds; a candidate's data is the first N subjects of one pool."""
+    """The data study's stages on the tuning seeds; a candidate's data is the first N subjects of one pool, its
+    steps those that cost what ``--steps`` steps of the base config cost (:meth:`step_costs`)."""
 
     held_out_seed, pool_seed = TUNING_HELD_OUT_SEED, TUNING_POOL_SEED
 
     def arm_data(self, arm: str) -> tuple[Path, list[str]]:
         return super().arm_data(f"scale-{CANDIDATES[arm][1]}")
 
+    def training(self, arm: str) -> tuple[int, list[str]]:
+        _, _, config, options = CANDIDATES[arm]
+        costs = self.step_costs()
+        return round(self.args.steps * costs[BASE_CONFIG] / costs[config]), ["--config", config, *options]
+
+    def step_costs(self) -> dict[str, float]:
+        """CPU seconds of a training step of each config the candidates use, measured once, side by side
+        (:class:`benchmarks.train_step.Stepper`'s batch of the candidates' shape, one thread, interleaved
+        rounds after a warm-up step; medians), and kept in ``DIR/step-costs.json``. CPU time counts the
+        work done, so a busy machine changes the ratios little."""
+        path = self.out / "step-costs.json"
+        configs = sorted({BASE_CONFIG} | {CANDIDATES[a][2] for a in self.args.arms})
+        if len(configs) == 1:
+            return {BASE_CONFIG: 1.0}
+        costs = json.loads(path.read_text()) if path.exists() else {}
+        if set(configs) - set(costs):
+            costs = measure_step_costs(configs)
+            atomic_write(path, json.dumps(costs, indent=1).encode())
+        return costs
+
+
+def measure_step_costs(configs: list[str], rounds: int = 3) -> dict[str, float]:
+    import torch
+
+    from benchmarks.train_step import Stepper
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        steppers = {c: Stepper({}, {}, config=c) for c in configs}
+        for s in steppers.values():
+            s.step()  # warm-up
+        cpu = {c: [] for c in configs}
+        for _ in range(rounds):
+            for c, s in steppers.items():
+                cpu[c].append(s.step()[1]["cpu"])
+    finally:
+        torch.set_num_threads(threads)
+    return {c: statistics.median(v) for c, v in cpu.items()}
+
 
 def collect(study: TuningStudy) -> dict:
-    arms = {a: dict(f, options=list(CANDIDATES[a][2])) for a in study.args.arms
-            if (f := data_value.arm_figures(study, a))}
+    arms = {}
+    for a in study.args.arms:
+        figures = data_value.arm_figures(study, a)
+        if figures:
+            steps, options = study.training(a)
+            arms[a] = dict(figures, planned_steps=steps, options=options)
     comparisons = {f"{a} - {b}": data_value.compare(arms[a], arms[b]) for a, b in COMPARISONS if a in arms and b in arms}
     best = max(arms, key=lambda a: arms[a]["held_out"]["novel"]["psnr_fg"]) if arms else None
     return {"machine": machine_info(), "seeds": {"held_out": study.held_out_seed, "pool": study.pool_seed},
             "settings": {"steps": study.args.steps, "batch_size": study.args.batch_size,
                          "held_out": study.args.held_out, "candidates": study.args.arms},
-            "arms": arms, "comparisons": comparisons, "best": best}
+            "step_cpu_s": study.step_costs(), "arms": arms, "comparisons": comparisons, "best": best}
 
 
 def markdown(res: dict) -> str:
@@ -65,22 +117,24 @@ def markdown(res: dict) -> str:
              f"Machine: {m['cpu_model']}, {m['usable_cpus']} usable CPUs, torch {m['torch']}, revision "
              f"{m['git_revision']}; report written {m['date']}, 1-minute load average {m['load_average'][0]:.2f} "
              f"then. Tuning seeds: held-out {res['seeds']['held_out']} ({s['held_out']} clean subjects), pool "
-             f"{res['seeds']['pool']}. Every candidate: `tiny`, {s['steps']} steps of batch {s['batch_size']} (the "
-             "candidates' steps cost the same, so equal steps are equal time); held-out scores: novel views (left, "
-             "back, right), foreground PSNR/SSIM, and the full frame of all four views, 128 px; intervals are 95 % "
-             "(Student's t over paired subjects).", "",
+             f"{res['seeds']['pool']}. Every candidate: batch {s['batch_size']}, the steps that cost what {s['steps']} "
+             f"steps of `{BASE_CONFIG}` cost (CPU seconds of a step, measured side by side: "
+             + ", ".join(f"`{c}` {v:.2f}" for c, v in res["step_cpu_s"].items()) + "); held-out scores: novel views "
+             "(left, back, right), foreground PSNR/SSIM, and the full frame of all four views, 128 px; intervals are "
+             "95 % (Student's t over paired subjects).", "",
              f"Candidates finished: {len(arms)} of {len(s['candidates'])}.", ""]
-    lines += table(["candidate", "what", "training subjects", "train-batch PSNR dB (64 px)",
+    lines += table(["candidate", "what", "training subjects", "steps", "train-batch PSNR dB (64 px)",
                     "held-out novel PSNR fg dB", "held-out novel SSIM fg", "held-out all PSNR dB",
                     "reconstructions flagged", "s/step (median)"],
-                   [[a, CANDIDATES[a][0], r["train_subjects"], f"{r['train_batch_psnr']:.2f}",
+                   [[a, CANDIDATES[a][0], r["train_subjects"], r["steps"], f"{r['train_batch_psnr']:.2f}",
                      f"{r['held_out']['novel']['psnr_fg']:.2f}", f"{r['held_out']['novel']['ssim_fg']:.3f}",
                      f"{r['held_out']['all']['psnr']:.2f}",
                      f"{r['defects']['flagged']} of {r['defects']['subjects']}" if r["defects"] else "-",
                      f"{r['step_s_median']:.2f}"] for a, r in arms.items()])
     if res["comparisons"]:
         lines += ["", "## Paired differences on the held-out subjects (novel-view foreground PSNR)", ""]
-        lines += table(["comparison", "difference"], [[k, data_value.ci_text(v["novel_psnr_fg"])] for k, v in res["comparisons"].items()])
+        lines += table(["comparison", "difference"],
+                       [[k, data_value.ci_text(v["novel_psnr_fg"])] for k, v in res["comparisons"].items()])
     if res["best"]:
         lines += ["", f"Highest held-out novel-view foreground PSNR: **{res['best']}**."]
     return "\n".join(lines + data_value.galleries(arms, "recipe_tuning")) + "\n"
@@ -99,7 +153,7 @@ def main(argv=None) -> int:
     study = TuningStudy(args)
     if not args.report_only:
         for arm in args.arms:
-            study.run_arm(arm, CANDIDATES[arm][2])
+            study.run_arm(arm)
     res = collect(study)
     for arm in res["arms"]:
         shutil.copyfile(study.out / "runs" / arm / "eval-held-out" / "gallery.png", REPORTS / f"recipe_tuning_{arm}.png")

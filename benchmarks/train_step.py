@@ -41,10 +41,10 @@ STAGES = ("encoder", "triplane_tokens", "ray_aggregation", "triplane_render", "g
 class Stepper:
     """One variant: its model, optimizer and a fixed synthetic batch; ``step()`` returns (seconds, stage seconds)."""
 
-    def __init__(self, overrides: dict, settings: dict, seed: int = 0):
+    def __init__(self, overrides: dict, settings: dict, seed: int = 0, config: str = "tiny"):
         self.cfg = TrainConfig(**settings)
         torch.manual_seed(seed)
-        self.model = PanoLAM(preset("tiny", **overrides))
+        self.model = PanoLAM(preset(config, **overrides))
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=self.cfg.lr, betas=self.cfg.betas)
         self.perceptual = train_module.Perceptual(self.cfg, "cpu")
         b, v, r, size = self.cfg.batch_size, self.cfg.views_per_sample, self.cfg.render_resolution, self.model.cfg.image_size

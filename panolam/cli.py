@@ -51,7 +51,7 @@ def _train_options(p):
     p.add_argument("--data", required=True, help="dataset directory (datagen sample --out)")
     p.add_argument("--manifest", required=True, help="curated manifest (label-tool compile)")
     p.add_argument("--config", help=f"model preset, optionally with ablations (default {DEFAULT_CONFIG}): tiny, full, "
-                                    "tiny+no_c2f, tiny+single_point, tiny+no_triplane")
+                                    "tiny+no_c2f, tiny+single_point, tiny+no_triplane, tiny+cross_only")
     p.add_argument("--out", help="run directory (checkpoint, logs, TensorBoard)")
     p.add_argument("--resume", nargs="?", const="", metavar="RUN",
                    help="continue the run in RUN (default: --out) exactly where it stopped")
