@@ -1,6 +1,9 @@
 """Which training recipe the README gives: candidate recipes trained for what a time budget buys, on tuning seeds.
 
     python -m benchmarks.recipe_tuning --out DIR                # 6 candidates, 300 steps of tiny each; resumes
+    python -m benchmarks.recipe_tuning --out DIR --prepare      # data and step costs only; then, side by side:
+    python -m benchmarks.recipe_tuning --out DIR --candidates readme subjects-500 floor-0.9
+    python -m benchmarks.recipe_tuning --out DIR --candidates warmup-30 lr-8e-4 cross-only
     python -m benchmarks.recipe_tuning --out DIR --report-only  # the report from what is finished
 
 Each candidate trains for the same CPU time: ``--steps`` steps of batch 2 of `tiny` (300 is what
@@ -146,11 +149,20 @@ def main(argv=None) -> int:
     parser.add_argument("--held-out", type=int, default=48, help="held-out subjects (clean)")
     parser.add_argument("--candidates", nargs="+", choices=list(CANDIDATES), default=list(CANDIDATES),
                         help="candidates to run, in this order")
+    parser.add_argument("--prepare", action="store_true",
+                        help="only generate the candidates' datasets and measure the step costs, so that processes "
+                             "given different --candidates can then train side by side")
     parser.add_argument("--report-only", action="store_true", help="write the report from what is finished")
     args = parser.parse_args(argv)
     args.arms = args.candidates
     args.scale = sorted({CANDIDATES[a][1] for a in CANDIDATES})
     study = TuningStudy(args)
+    if args.prepare:
+        study.held_out()
+        for arm in args.arms:
+            study.arm_data(arm)
+            study.training(arm)
+        return 0
     if not args.report_only:
         for arm in args.arms:
             study.run_arm(arm)

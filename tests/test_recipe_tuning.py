@@ -50,6 +50,10 @@ def test_a_toy_tuning_study_scores_and_compares_the_candidates(tmp_path, monkeyp
     monkeypatch.setattr(recipe_tuning, "CANDIDATES", small)
     argv = ["--out", str(tmp_path / "tuning"), "--steps", "2", "--held-out", "4",
             "--candidates", "readme", "subjects-500", "cross-only"]
+    assert recipe_tuning.main([*argv, "--prepare"]) == 0  # data and step costs, nothing trained
+    study = tmp_path / "tuning"
+    assert {p.name for p in study.iterdir()} >= {"held-out", "pool-8", "pool-12", "step-costs.json"}
+    assert not (study / "runs").exists()
     assert recipe_tuning.main(argv) == 0
     res = json.loads((reports / "recipe_tuning.json").read_text())
     assert list(res["arms"]) == ["readme", "subjects-500", "cross-only"]
