@@ -61,8 +61,11 @@ class TuningStudy(data_value.Study):
 
     def training(self, arm: str) -> tuple[int, list[str]]:
         _, _, config, options = CANDIDATES[arm]
-        costs = self.step_costs()
-        return round(self.args.steps * costs[BASE_CONFIG] / costs[config]), ["--config", config, *options]
+        steps = self.args.steps
+        if config != BASE_CONFIG:
+            costs = self.step_costs()
+            steps = round(steps * costs[BASE_CONFIG] / costs[config])
+        return steps, ["--config", config, *options]
 
     def step_costs(self) -> dict[str, float]:
         """CPU seconds of a training step of each config the candidates use, measured once, side by side
@@ -70,12 +73,10 @@ class TuningStudy(data_value.Study):
         rounds after a warm-up step; medians), and kept in ``DIR/step-costs.json``. CPU time counts the
         work done, so a busy machine changes the ratios little."""
         path = self.out / "step-costs.json"
-        configs = sorted({BASE_CONFIG} | {CANDIDATES[a][2] for a in self.args.arms})
-        if len(configs) == 1:
-            return {BASE_CONFIG: 1.0}
+        configs = {BASE_CONFIG} | {CANDIDATES[a][2] for a in self.args.arms}
         costs = json.loads(path.read_text()) if path.exists() else {}
-        if set(configs) - set(costs):
-            costs = measure_step_costs(configs)
+        if len(configs) > 1 and configs - set(costs):
+            costs = measure_step_costs(sorted(configs))
             atomic_write(path, json.dumps(costs, indent=1).encode())
         return costs
 
@@ -117,12 +118,15 @@ def collect(study: TuningStudy) -> dict:
 def markdown(res: dict) -> str:
     m, s, arms = res["machine"], res["settings"], res["arms"]
     lines = ["# Choosing the training recipe (tuning seeds)", "",
-             f"Machine: {m['cpu_model']}, {m['usable_cpus']} usable CPUs, torch {m['torch']}, revision "
+             f"Machine: {m['cpu_model']} ({m.get('cpu_family_model')}, {m.get('cpu_capability')}), "
+             f"{m['usable_cpus']} usable CPUs, torch {m['torch']}, revision "
              f"{m['git_revision']}; report written {m['date']}, 1-minute load average {m['load_average'][0]:.2f} "
              f"then. Tuning seeds: held-out {res['seeds']['held_out']} ({s['held_out']} clean subjects), pool "
              f"{res['seeds']['pool']}. Every candidate: batch {s['batch_size']}, the steps that cost what {s['steps']} "
-             f"steps of `{BASE_CONFIG}` cost (CPU seconds of a step, measured side by side: "
-             + ", ".join(f"`{c}` {v:.2f}" for c, v in res["step_cpu_s"].items()) + "); held-out scores: novel views "
+             f"steps of `{BASE_CONFIG}` cost"
+             + (" (CPU seconds of a step, measured side by side: "
+                + ", ".join(f"`{c}` {v:.2f}" for c, v in res["step_cpu_s"].items()) + ")" if res["step_cpu_s"] else "")
+             + "; held-out scores: novel views "
              "(left, back, right), foreground PSNR/SSIM, and the full frame of all four views, 128 px; intervals are "
              "95 % (Student's t over paired subjects).", "",
              f"Candidates finished: {len(arms)} of {len(s['candidates'])}.", ""]
