@@ -84,20 +84,14 @@ class TuningStudy(data_value.Study):
 def measure_step_costs(configs: list[str], rounds: int = 3) -> dict[str, float]:
     import torch
 
-    from benchmarks.train_step import Stepper
+    from benchmarks.train_step import Stepper, interleaved
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        steppers = {c: Stepper({}, {}, config=c) for c in configs}
-        for s in steppers.values():
-            s.step()  # warm-up
-        cpu = {c: [] for c in configs}
-        for _ in range(rounds):
-            for c, s in steppers.items():
-                cpu[c].append(s.step()[1]["cpu"])
+        runs = interleaved({c: Stepper({}, {}, config=c) for c in configs}, rounds)
     finally:
         torch.set_num_threads(threads)
-    return {c: statistics.median(v) for c, v in cpu.items()}
+    return {c: statistics.median(stages["cpu"] for _, stages in rows) for c, rows in runs.items()}
 
 
 def collect(study: TuningStudy) -> dict:

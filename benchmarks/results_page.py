@@ -285,8 +285,8 @@ READERS: dict[str, Callable[[dict], list[str]]] = {
 # The page's order: stems (and the variants that start with them) by what they measure.
 GROUPS = {"Data generation": ["datagen_speed", "procedural_people", "gan_speed", "gan_fullsize", "shape_speed"],
           "Curation": ["preflags_quality", "preflags_tuning", "preflags_speed", "gui_latency"],
-          "PanoLAM": ["panolam_recipe", "recipe_tuning", "data_value", "panolam_training", "speed_vs_error", "model_speed", "train_step",
-                      "rasterizer_speed", "rasterizer_constants"],
+          "PanoLAM": ["panolam_recipe", "recipe_tuning", "data_value", "panolam_training", "speed_vs_error",
+                      "model_speed", "train_step", "rasterizer_speed", "rasterizer_constants"],
           "Machine": ["threads"]}
 
 

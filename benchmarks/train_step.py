@@ -72,17 +72,23 @@ class Stepper:
         return t2 - t0, {**seconds, "backward_adam": t2 - t1, "cpu": time.process_time() - c0}
 
 
-def measure(rounds: int, threads: int) -> dict:
-    torch.set_num_threads(threads)
-    results = {"machine": machine_info(), "rounds": rounds, "threads": threads, "load_before": load_average(), "variants": {}}
-    steppers = {name: Stepper(o, s) for name, (_, o, s) in VARIANTS.items()}
+def interleaved(steppers: dict[str, Stepper], rounds: int) -> dict[str, list[tuple[float, dict]]]:
+    """``rounds`` steps of every stepper, one of each per round after a warm-up step each, so that the machine's
+    load hits them alike: name -> [Stepper.step() of each round]."""
     for s in steppers.values():
         s.step()  # warm-up
     runs = {name: [] for name in steppers}
     for _ in range(rounds):
         for name, s in steppers.items():
             runs[name].append(s.step())
-    for name, rows in runs.items():
+    return runs
+
+
+def measure(rounds: int, threads: int) -> dict:
+    torch.set_num_threads(threads)
+    results = {"machine": machine_info(), "rounds": rounds, "threads": threads, "load_before": load_average(), "variants": {}}
+    steppers = {name: Stepper(o, s) for name, (_, o, s) in VARIANTS.items()}
+    for name, rows in interleaved(steppers, rounds).items():
         what, overrides, settings = VARIANTS[name]
         results["variants"][name] = {
             "what": what, "overrides": overrides, "settings": settings, "seconds": [t for t, _ in rows],
