@@ -22,8 +22,11 @@ Arms:
 
 Resuming: datasets are written with `datagen sample --resume`, training with `panolam train
 --resume`, and a finished stage is not redone (its output is its marker), so the study can be run
-in pieces and killed at any moment. Writes ``benchmarks/reports/data_value.{md,json}``, the plot
-``data_value_scale.png`` and one gallery per arm (``data_value_<arm>.png``).
+in pieces and killed at any moment. An arm finished earlier whose folder is gone (moved, deleted,
+another machine) keeps its figures from the last report written with the same settings and seeds,
+and the report says so; each arm names the hosts and code it trained on. Writes
+``benchmarks/reports/data_value.{md,json}``, the plot ``data_value_scale.png`` and one gallery per
+arm (``data_value_<arm>.png``).
 """
 from __future__ import annotations
 
@@ -40,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import REPORTS, injected_defects, machine_info, pyplot, table, write_report
+from datagen.files import atomic_write
 
 HELD_OUT_SEED, POOL_SEED, DEFECT_SEED = 7411, 5303, 6197  # used nowhere else in the project
 RESOLUTION = 128  # the encoder's input size (tiny): training resizes targets to 64 px, eval compares at 128
@@ -160,6 +164,7 @@ class Study:
         steps, options = self.training(arm)
         if _steps_done(run) < steps:
             resume = ["--resume", str(run)] if (run / "checkpoint.pt").exists() else ["--out", str(run), *options]
+            record_host(run)
             peak = console("panolam", "train", "--data", str(root), "--manifest", str(manifest), "--steps", str(steps),
                            "--batch-size", str(self.args.batch_size), "--no-progress", "--checkpoint-every", "50",
                            *resume, cwd=self.out, log=self.out / f"{arm}.log")
@@ -181,6 +186,44 @@ class Study:
             console("panolam", "eval", "--data", str(root), "--manifest", str(seen), "--ckpt", str(run),
                     "--out", str(run / "eval-train"), "--no-baselines", "--no-faces", "--gallery", "0",
                     cwd=self.out, log=self.out / f"{arm}.log")
+
+
+def host_label(m: dict) -> str:
+    """The host and code of a :func:`machine_info`: 'AMD EPYC (family 26 model 2, AVX512), revision 5df2a21'."""
+    cpu = ", ".join(v for v in (m.get("cpu_family_model"), m.get("cpu_capability")) if v)
+    return f"{m['cpu_model']}{f' ({cpu})' if cpu else ''}, revision {m['git_revision'].split()[0][:7]}"
+
+
+def record_host(run: Path) -> None:
+    """Add the host and code of a training process about to start to ``run/hosts.json`` (one line per process
+    that trained, a resume included): arms trained on different hosts or code say so in the report."""
+    path = run / "hosts.json"
+    hosts = json.loads(path.read_text()) if path.exists() else []
+    run.mkdir(parents=True, exist_ok=True)
+    atomic_write(path, json.dumps([*hosts, {"host": host_label(machine_info()), "from_step": _steps_done(run)}],
+                                  indent=1).encode())
+
+
+def previous_report(report: Path, settings: dict, seeds: dict) -> dict | None:
+    """The study's last report (``report``) when it was written with the same ``seeds`` and the same values of
+    ``settings`` (a subset of the study's settings), else None."""
+    old = json.loads(report.read_text()) if report.exists() else None
+    if old is None or old["seeds"] != seeds or any(old["settings"].get(k) != v for k, v in settings.items()):
+        return None
+    return old
+
+
+def carry(found: dict, wanted: list[str], old: dict | None) -> dict:
+    """``found`` (figures of the arms finished in the study's folder) and, for each arm of ``wanted`` that is not
+    there, its figures from ``old`` (:func:`previous_report`), in ``wanted`` order: a folder lost or moved keeps
+    the arms it finished. A carried arm keeps the hosts it trained on (that report's machine where it has none)
+    and says when that report was written (``carried_from``)."""
+    arms = dict(found)
+    for a in wanted:
+        if a not in arms and old and a in old["arms"]:
+            arms[a] = dict(old["arms"][a], carried_from=old["machine"]["date"],
+                           hosts=old["arms"][a].get("hosts") or [{"host": host_label(old["machine"]), "from_step": 0}])
+    return {a: arms[a] for a in wanted if a in arms}
 
 
 def _complete(root: Path) -> bool:
@@ -268,12 +311,20 @@ def arm_figures(study: Study, arm: str) -> dict | None:
         if "baselines" in ev else None,
         "csim": ev["per_view"]["front"].get("csim"),
         "defects": _defect_rates(run / "renders-held-out" / "preflags.json", set(per_subject(ev))),
+        "hosts": json.loads((run / "hosts.json").read_text()) if (run / "hosts.json").exists() else None,
     }
 
 
+STUDY_SETTINGS = ("steps", "batch_size", "held_out", "curation_subjects", "defect_rate")  # what arms must share
+
+
 def collect(study: Study) -> dict:
-    """The figures of every finished arm in the study's folder."""
-    arms = {a: f for a in sorted(study.args.arms, key=_report_order) if (f := arm_figures(study, a))}
+    """The figures of every finished arm: in the study's folder, or carried from the last report."""
+    settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(study.args).items()}
+    seeds = {"held_out": study.held_out_seed, "pool": study.pool_seed, "defects": DEFECT_SEED}
+    old = previous_report(REPORTS / f"{study.args.report}.json", {k: settings[k] for k in STUDY_SETTINGS}, seeds)
+    wanted = sorted(study.args.arms, key=_report_order)
+    arms = carry({a: f for a in wanted if (f := arm_figures(study, a))}, wanted, old)
     comparisons = {}
     scale = [a for a in arms if a.startswith("scale-")]  # by size: arms are in _report_order
     for a in scale[1:]:
@@ -288,13 +339,13 @@ def collect(study: Study) -> dict:
             comparisons[f"{name} - mean-colour template"] = {
                 "novel_psnr_fg": paired(r["per_subject_novel_psnr_fg"], r["template_per_subject_novel_psnr_fg"])}
     truth_flags = study.out / "held-out" / "preflags.json"
-    if arms and not truth_flags.exists():
+    if arms and not truth_flags.exists() and _complete(study.out / "held-out"):
         study.detect(study.out / "held-out")
     held_out = set(next(iter(arms.values()))["per_subject_novel_psnr_fg"]) if arms else set()
-    return {"machine": machine_info(), "held_out_defects": _defect_rates(truth_flags, held_out), "settings": {k: (str(v) if isinstance(v, Path) else v)
-                                                    for k, v in vars(study.args).items()},
-            "seeds": {"held_out": study.held_out_seed, "pool": study.pool_seed, "defects": DEFECT_SEED},
-            "arms": arms, "comparisons": comparisons, "curation": curation_counts(study)}
+    return {"machine": machine_info(),
+            "held_out_defects": _defect_rates(truth_flags, held_out) or (old and old["held_out_defects"]),
+            "settings": settings, "seeds": seeds, "arms": arms, "comparisons": comparisons,
+            "curation": curation_counts(study, old and old["curation"])}
 
 
 def _defect_rates(report: Path, subjects: set[str]) -> dict | None:
@@ -324,12 +375,13 @@ def _kinds(defects) -> dict[str, int]:
     return dict(sorted(kinds.items()))
 
 
-def curation_counts(study: Study) -> dict | None:
+def curation_counts(study: Study, old: dict | None = None) -> dict | None:
     """How many subjects the curation dataset has, how many carry injected defects, what auto flagged, and
-    what each curation arm whose manifest is written trains on (subjects, defective ones, by class)."""
+    what each curation arm whose manifest is written trains on (subjects, defective ones, by class); arms
+    with no manifest here keep what ``old`` (the last report's counts) says when the dataset counts agree."""
     root = study.out / "defects"
     if not (root / "preflags.json").exists():
-        return None
+        return old
     truth = injected_defects(root)
     flagged = {r["subject"] for r in json.loads((root / "preflags.json").read_text())["subjects"] if r["flags"]}
     bad = {s for s, d in truth.items() if d}
@@ -340,8 +392,12 @@ def curation_counts(study: Study) -> dict | None:
             train = [r["subject"] for r in json.loads(manifest.read_text())["subjects"] if r["split"] == "train"]
             training[f"curation-{arm}"] = {"subjects": len(train), "defective": sum(1 for s in train if truth[s]),
                                            "defect_types": _kinds(truth[s] for s in train)}
-    return {"subjects": len(truth), "defective": len(bad), "flagged": len(flagged),
-            "flagged_defective": len(flagged & bad), "defect_types": _kinds(truth.values()), "training": training}
+    counts = {"subjects": len(truth), "defective": len(bad), "flagged": len(flagged),
+              "flagged_defective": len(flagged & bad), "defect_types": _kinds(truth.values())}
+    if old and all(old[k] == v for k, v in counts.items()):
+        training = {f"curation-{a}": training.get(f"curation-{a}") or old["training"][f"curation-{a}"]
+                    for a in CURATION_ARMS if f"curation-{a}" in training or f"curation-{a}" in old["training"]}
+    return dict(counts, training=training)
 
 
 # -- the report ---------------------------------------------------------------------------------------------
@@ -384,7 +440,8 @@ def markdown(res: dict, plotted: bool) -> str:
              f"({s['curation_subjects']} subjects, defect rate {s['defect_rate']}). Every arm: `tiny`, "
              f"{s['steps']} steps of batch {s['batch_size']}; held-out scores: novel views (left, back, right), "
              "foreground PSNR/SSIM, 128 px; intervals are 95 % (Student's t over paired subjects).", "",
-             f"Arms finished: {len(arms)} of {len(s['arms'])} ({', '.join(arms) or 'none'}).", ""]
+             f"Arms finished: {len(arms)} of {len(s['arms'])} ({', '.join(arms) or 'none'}).", "",
+             *trained_on(arms)]
     rows = []
     for name, r in arms.items():
         tr = r["train_subjects_eval"]
@@ -424,6 +481,22 @@ def markdown(res: dict, plotted: bool) -> str:
     if plotted:
         lines += ["", "![novel-view foreground PSNR against training subjects](data_value_scale.png)"]
     return "\n".join(lines + galleries(arms, "data_value")) + "\n"
+
+
+def trained_on(arms: dict) -> list[str]:
+    """Markdown lines: the hosts and code each arm trained on, and which arms came from an earlier report."""
+    hosts = {}
+    for name, r in arms.items():
+        for host in dict.fromkeys(h["host"] for h in r.get("hosts") or []):
+            hosts.setdefault(host, []).append(name)
+    lines = ["Trained on " + "; ".join(f"{h}: {', '.join(names)}" for h, names in hosts.items()) + "."] if hosts else []
+    carried = {}
+    for name, r in arms.items():
+        if r.get("carried_from"):
+            carried.setdefault(r["carried_from"], []).append(name)
+    lines += [f"From the report of {date} (their work folder is gone; figures as reported then): {', '.join(names)}."
+              for date, names in carried.items()]
+    return [*lines, ""] if lines else []
 
 
 def galleries(arms, report: str) -> list[str]:

@@ -95,18 +95,21 @@ def measure_step_costs(configs: list[str], rounds: int = 3) -> dict[str, float]:
 
 
 def collect(study: TuningStudy) -> dict:
-    arms = {}
+    settings = {"steps": study.args.steps, "batch_size": study.args.batch_size, "held_out": study.args.held_out}
+    seeds = {"held_out": study.held_out_seed, "pool": study.pool_seed}
+    found = {}
     for a in study.args.arms:
         figures = data_value.arm_figures(study, a)
         if figures:
             steps, options = study.training(a)
-            arms[a] = dict(figures, planned_steps=steps, options=options)
+            found[a] = dict(figures, planned_steps=steps, options=options)
+    old = data_value.previous_report(REPORTS / "recipe_tuning.json", settings, seeds)
+    arms = data_value.carry(found, study.args.arms, old)
     comparisons = {f"{a} - {b}": data_value.compare(arms[a], arms[b]) for a, b in COMPARISONS if a in arms and b in arms}
     best = max(arms, key=lambda a: arms[a]["held_out"]["novel"]["psnr_fg"]) if arms else None
     return {"machine": machine_info(), "seeds": {"held_out": study.held_out_seed, "pool": study.pool_seed},
-            "settings": {"steps": study.args.steps, "batch_size": study.args.batch_size,
-                         "held_out": study.args.held_out, "candidates": study.args.arms},
-            "step_cpu_s": study.step_costs(), "arms": arms, "comparisons": comparisons, "best": best}
+            "settings": dict(settings, candidates=study.args.arms),
+            "step_cpu_s": study.step_costs() or (old or {}).get("step_cpu_s", {}), "arms": arms, "comparisons": comparisons, "best": best}
 
 
 def markdown(res: dict) -> str:
@@ -123,7 +126,7 @@ def markdown(res: dict) -> str:
              + "; held-out scores: novel views "
              "(left, back, right), foreground PSNR/SSIM, and the full frame of all four views, 128 px; intervals are "
              "95 % (Student's t over paired subjects).", "",
-             f"Candidates finished: {len(arms)} of {len(s['candidates'])}.", ""]
+             f"Candidates finished: {len(arms)} of {len(s['candidates'])}.", "", *data_value.trained_on(arms)]
     lines += table(["candidate", "what", "training subjects", "steps", "train-batch PSNR dB (64 px)",
                     "held-out novel PSNR fg dB", "held-out novel SSIM fg", "held-out all PSNR dB",
                     "reconstructions flagged", "s/step (median)"],
@@ -166,7 +169,9 @@ def main(argv=None) -> int:
             study.run_arm(arm)
     res = collect(study)
     for arm in res["arms"]:
-        shutil.copyfile(study.out / "runs" / arm / "eval-held-out" / "gallery.png", REPORTS / f"recipe_tuning_{arm}.png")
+        gallery = study.out / "runs" / arm / "eval-held-out" / "gallery.png"
+        if gallery.exists():  # a carried candidate's is in the reports already
+            shutil.copyfile(gallery, REPORTS / f"recipe_tuning_{arm}.png")
     write_report(REPORTS / "recipe_tuning", res, markdown(res))
     return 0
 

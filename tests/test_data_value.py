@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -36,6 +37,29 @@ def test_step_lines_are_read_with_and_without_the_data_time(tmp_path):
     assert math.isnan(rows[0]["data_s"]) and data_value._steps_done(tmp_path) == 2
 
 
+def test_arms_of_the_last_report_are_carried_when_the_folder_lost_them(tmp_path):
+    machine = {"cpu_model": "AMD EPYC", "cpu_family_model": "family 23 model 1", "cpu_capability": "AVX2",
+               "git_revision": "069367a (from an archive)", "date": "2026-12-07T00:00:15+00:00"}
+    old = {"machine": machine, "seeds": {"held_out": 1}, "settings": {"steps": 10, "batch_size": 2},
+           "arms": {"a": {"psnr": 1.0}, "b": {"psnr": 2.0}, "gone": {"psnr": 3.0}}}
+    report = tmp_path / "study.json"
+    report.write_text(json.dumps(old))
+    assert data_value.previous_report(report, {"steps": 10}, {"held_out": 1}) == old
+    assert data_value.previous_report(report, {"steps": 20}, {"held_out": 1}) is None  # other settings: not one study
+    assert data_value.previous_report(report, {"steps": 10}, {"held_out": 2}) is None
+    assert data_value.previous_report(tmp_path / "none.json", {"steps": 10}, {"held_out": 1}) is None
+    here = {"host": "AMD EPYC (family 26 model 2, AVX512), revision 5df2a21", "from_step": 0}
+    arms = data_value.carry({"b": {"psnr": 5.0, "hosts": [here]}}, ["b", "a", "new"], old)
+    assert list(arms) == ["b", "a"] and arms["b"] == {"psnr": 5.0, "hosts": [here]}  # the folder's own wins
+    assert arms["a"]["psnr"] == 1.0 and arms["a"]["carried_from"] == machine["date"]
+    assert arms["a"]["hosts"] == [{"host": "AMD EPYC (family 23 model 1, AVX2), revision 069367a", "from_step": 0}]
+    assert data_value.carry({}, ["a"], None) == {}
+    lines = data_value.trained_on(arms)
+    assert lines[0] == ("Trained on AMD EPYC (family 26 model 2, AVX512), revision 5df2a21: b; "
+                        "AMD EPYC (family 23 model 1, AVX2), revision 069367a: a.")
+    assert machine["date"] in lines[1] and lines[1].endswith(": a.")
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(3600)  # about 5 minutes on 2 idle cores: 6 arms, 4 datasets
 def test_a_toy_study_runs_every_arm_and_resumes(tmp_path, monkeypatch, toy_study_reports):
@@ -64,3 +88,12 @@ def test_a_toy_study_runs_every_arm_and_resumes(tmp_path, monkeypatch, toy_study
     stamp = {p: p.stat().st_mtime_ns for p in (tmp_path / "study" / "runs").rglob("*") if p.is_file()}
     assert data_value.main(argv) == 0  # all done: nothing is trained or evaluated again
     assert stamp == {p: p.stat().st_mtime_ns for p in (tmp_path / "study" / "runs").rglob("*") if p.is_file()}
+    assert all(r["hosts"] == [{"host": data_value.host_label(data_value.machine_info()), "from_step": 0}]
+               for r in arms.values())
+    shutil.rmtree(tmp_path / "study" / "runs" / "curation-truth")  # a folder that lost an arm keeps it from the report
+    (tmp_path / "study" / "manifests" / "curation-truth.json").unlink()
+    assert data_value.main([*argv, "--report-only"]) == 0
+    again = json.loads((reports / "data_value.json").read_text())
+    assert again["arms"]["curation-truth"] == dict(arms["curation-truth"], carried_from=res["machine"]["date"])
+    assert again["curation"] == c and again["comparisons"] == res["comparisons"]
+    assert "From the report of" in (reports / "data_value.md").read_text()
