@@ -216,13 +216,11 @@ def previous_report(report: Path, settings: dict, seeds: dict) -> dict | None:
 def carry(found: dict, wanted: list[str], old: dict | None) -> dict:
     """``found`` (figures of the arms finished in the study's folder) and, for each arm of ``wanted`` that is not
     there, its figures from ``old`` (:func:`previous_report`), in ``wanted`` order: a folder lost or moved keeps
-    the arms it finished. A carried arm keeps the hosts it trained on (that report's machine where it has none)
-    and says when that report was written (``carried_from``)."""
+    the arms it finished. A carried arm says when that report was written (``carried_from``)."""
     arms = dict(found)
     for a in wanted:
         if a not in arms and old and a in old["arms"]:
-            arms[a] = dict(old["arms"][a], carried_from=old["machine"]["date"],
-                           hosts=old["arms"][a].get("hosts") or [{"host": host_label(old["machine"]), "from_step": 0}])
+            arms[a] = dict(old["arms"][a], carried_from=old["machine"]["date"])
     return {a: arms[a] for a in wanted if a in arms}
 
 
@@ -487,7 +485,7 @@ def trained_on(arms: dict) -> list[str]:
     """Markdown lines: the hosts and code each arm trained on, and which arms came from an earlier report."""
     hosts = {}
     for name, r in arms.items():
-        for host in dict.fromkeys(h["host"] for h in r.get("hosts") or []):
+        for host in dict.fromkeys(h["host"] for h in r.get("hosts") or [{"host": "hosts not recorded"}]):
             hosts.setdefault(host, []).append(name)
     lines = ["Trained on " + "; ".join(f"{h}: {', '.join(names)}" for h, names in hosts.items()) + "."] if hosts else []
     carried = {}
