@@ -21,6 +21,7 @@ from collections.abc import Callable
 import numpy as np
 
 from benchmarks.common import REPO, REPORTS, table
+from benchmarks.data_value import trained_on
 from datagen.files import atomic_write
 
 PAGE = REPO / "docs" / "results.md"
@@ -208,7 +209,7 @@ def study_of_arms(d: dict) -> list[str]:
               f"{num(r['step_s_median'])} s a step." for name, r in d["arms"].items()]
     lines += [f"{name}: {c['novel_psnr_fg']['mean']:+.2f} dB, 95 % interval {c['novel_psnr_fg']['ci95'][0]:+.2f} to "
               f"{c['novel_psnr_fg']['ci95'][1]:+.2f}." for name, c in d["comparisons"].items()]
-    return lines
+    return lines + [line for line in trained_on(d["arms"]) if line]
 
 
 def panolam_training(d: dict) -> list[str]:

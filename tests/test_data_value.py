@@ -91,8 +91,9 @@ def test_a_toy_study_runs_every_arm_and_resumes(tmp_path, monkeypatch, toy_study
                for r in arms.values())
     shutil.rmtree(tmp_path / "study" / "runs" / "curation-truth")  # a folder that lost an arm keeps it from the report
     (tmp_path / "study" / "manifests" / "curation-truth.json").unlink()
+    before = json.loads((reports / "data_value.json").read_text())
     assert data_value.main([*argv, "--report-only"]) == 0
     again = json.loads((reports / "data_value.json").read_text())
-    assert again["arms"]["curation-truth"] == dict(arms["curation-truth"], carried_from=res["machine"]["date"])
+    assert again["arms"]["curation-truth"] == dict(arms["curation-truth"], carried_from=before["machine"]["date"])
     assert again["curation"] == c and again["comparisons"] == res["comparisons"]
     assert "From the report of" in (reports / "data_value.md").read_text()
