@@ -17,7 +17,9 @@ import dataclasses
 import difflib
 import math
 import os
+import signal
 import sys
+import threading
 
 from .errors import SettingError, UserError, os_error_line
 
@@ -65,10 +67,29 @@ class OneLineParser(argparse.ArgumentParser):
         return None
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill PID``, ``timeout``, a batch scheduler) arrived: the command stops as on Ctrl-C."""
+
+
+def _terminated(signum, frame):
+    raise Terminated
+
+
 def run_command(prog: str, commands: dict, args, interrupted: str, parser: OneLineParser | None = None) -> int:
     """Run ``commands[args.command](args)`` on the CPU threads :mod:`datagen.threads` chooses (``--threads``
     where the command has it); user mistakes become one line on stderr and exit 2, settings named by the
-    flags of ``parser`` (the one that parsed ``args``), else ``--`` + their name."""
+    flags of ``parser`` (the one that parsed ``args``), else ``--`` + their name. Ctrl-C and SIGTERM stop
+    it alike (what is kept is ``interrupted``; exit 130 and 143)."""
+    main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _terminated) if main else None
+    try:
+        return _run(prog, commands, args, interrupted, parser)
+    finally:
+        if main:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _run(prog: str, commands: dict, args, interrupted: str, parser: OneLineParser | None) -> int:
     from .threads import for_command
     try:
         with for_command(getattr(args, "threads", None)):
@@ -82,9 +103,10 @@ def run_command(prog: str, commands: dict, args, interrupted: str, parser: OneLi
     except UserError as e:
         print(f"{prog} {args.command}: error: {e}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"{prog} {args.command}: interrupted; {interrupted}", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as e:
+        print(f"{prog} {args.command}: {'terminated' if isinstance(e, Terminated) else 'interrupted'}; {interrupted}",
+              file=sys.stderr)
+        return 143 if isinstance(e, Terminated) else 130
     except BrokenPipeError:
         if not _stdout_closed():
             raise

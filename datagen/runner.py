@@ -15,7 +15,9 @@ items before they get here (:func:`datagen.dataset.shards.job_shards`).
   given or RAY_ADDRESS, else a private local one (:mod:`datagen.raycluster`); progress advances as
   items finish.
 
-After an error or an interrupt, items not yet started are cancelled and the error is raised here.
+After an error or an interrupt, items not yet started are cancelled and the error is raised here; an
+interrupt (Ctrl-C, or SIGTERM through :func:`datagen.command_line.run_command`) also stops local workers
+at once.
 """
 from __future__ import annotations
 
@@ -173,9 +175,19 @@ def _on_workers(task, job, items, placement: Placement, progress: _Progress):
                     result = future.result()  # a worker's error is raised here
                     progress.done(i)
                     yield i, result
-        finally:
+        except KeyboardInterrupt:
+            # Stop the workers now: they would otherwise finish their items and the ones queued to them
+            # (the pool's own processes: the executor has no public way before Python 3.14). A task stopped
+            # midway leaves only temporary files, which the next run removes. The pending futures fail as
+            # the pool breaks; cancelling them as well would race with that.
+            for process in list(pool._processes.values()):
+                process.terminate()
+            raise
+        except BaseException:
             for future in pending:
                 future.cancel()
+            raise
+        finally:
             _drain(reports, progress)
 
 

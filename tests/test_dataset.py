@@ -205,6 +205,39 @@ def test_resume_after_sigkill_loses_and_duplicates_nothing(tmp_path):
     assert all_files(out) == all_files(clean)
 
 
+def test_sigterm_stops_the_workers_too_and_resume_completes(tmp_path):
+    """``kill PID`` (or ``timeout``) reaches only the command: its workers must stop with it, not finish
+    their queued shards into the folder the next run resumes."""
+    out = tmp_path / "terminated"
+    args = [sys.executable, "-m", "datagen.cli", "sample", "--subjects", "16", "--shard-size", "1", "--workers", "2",
+            "--resolution", "64", "--views", "8", "--seed", "7", "--out", str(out), "--quiet"]
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    proc = subprocess.Popen(args, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)  # its own process group: every worker is in it
+    deadline = time.time() + 120
+    while time.time() < deadline and not any(sidecar_path(out, i).exists() for i in range(16)):
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143 and err.strip() == "datagen sample: terminated; rerun with --resume to continue"
+    complete = [i for i in range(16) if sidecar_path(out, i).exists()]
+    assert len(complete) < 16, "terminated too late to test anything"
+    deadline = time.time() + 10
+    while time.time() < deadline:
+        try:
+            os.killpg(proc.pid, 0)  # raises once no process of the group is left
+        except ProcessLookupError:
+            break
+        time.sleep(0.1)
+    else:
+        pytest.fail("worker processes outlived the command")
+    assert [i for i in range(16) if sidecar_path(out, i).exists()] == complete  # none wrote after the command ended
+    rerun = subprocess.run(args + ["--resume"], env=env, capture_output=True, text=True, timeout=300)
+    assert rerun.returncode == 0, rerun.stderr
+    report = verify_dataset(out)
+    assert report["problems"] == [] and report["subjects"] == 16 and report["stray"] == []
+
+
 # -- two runs into one folder ------------------------------------------------------------------------
 
 SAMPLE = [sys.executable, "-m", "datagen.cli", "sample", "--subjects", "4", "--shard-size", "1", "--views", "3",
