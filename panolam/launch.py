@@ -95,11 +95,19 @@ def run(job: Job, nproc: int = 1) -> Optional[dict]:
     # Each process checks again as it starts; checking here first makes a mistake one line, not one per process.
     process_device(job.device, nproc - 1, torch.cuda.device_count())
     check_start(job.data, job.manifest, job.model, job.training, job.out, job.resume)
+    processes = mp.spawn(_child, args=(nproc, free_port(), job), nprocs=nproc, join=False)
     try:
-        mp.spawn(_child, args=(nproc, free_port(), job), nprocs=nproc)
+        while not processes.join():
+            pass
     except mp.ProcessExitedException as e:
         if e.exit_code == 2:  # the process has said why
             raise SystemExit(2) from None
+        raise
+    except KeyboardInterrupt:
+        # Ctrl-C reaches the whole process group, SIGTERM (kill PID) only this process: stop the others too,
+        # or they train on alone. A checkpoint is written under a temporary name, so none is left half-written.
+        for process in processes.processes:
+            process.terminate()
         raise
     return None
 

@@ -7,8 +7,10 @@ import io
 import json
 import math
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -372,6 +374,37 @@ def test_nproc_mistakes_are_one_line_before_any_process_starts(curated, tmp_path
     r = _cli("train", "--data", data, "--manifest", manifest, "--out", run, "--nproc", "2")
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
     assert "already holds a run; pass --resume to continue it or choose another --out" in r.stderr
+
+
+def test_sigterm_stops_every_training_process_and_the_run_resumes(curated, tmp_path):
+    data, manifest = curated
+    run = tmp_path / "run"
+    base = [sys.executable, "-m", "panolam", "train", "--data", str(data), "--manifest", str(manifest), "--steps",
+            "1000", "--render-resolution", "16", "--views-per-sample", "3", "--batch-size", "1", "--no-progress",
+            "--checkpoint-every", "1", "--nproc", "2"]
+    proc = subprocess.Popen([*base, "--out", str(run)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)  # its own process group: both training processes are in it
+    deadline = time.time() + 300
+    while time.time() < deadline and proc.poll() is None and not (run / "checkpoint.pt").exists():
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143, err
+    assert err.strip().splitlines()[-1] == "panolam train: terminated; the last checkpoint is kept; rerun with --resume"
+    deadline = time.time() + 20
+    while time.time() < deadline:
+        try:
+            os.killpg(proc.pid, 0)  # raises once no process of the group is left
+        except ProcessLookupError:
+            break
+        time.sleep(0.1)
+    else:
+        pytest.fail("a training process outlived the command")
+    step = read_checkpoint(run)["step"]
+    resumed = subprocess.run([*base[:-2], "--time-limit", "0.001", "--resume", str(run)],  # one more step
+                             capture_output=True, text=True, timeout=300)
+    assert resumed.returncode == 0, resumed.stderr
+    assert read_checkpoint(run)["step"] == step + 1
 
 
 @pytest.mark.parametrize("argv, message", [
