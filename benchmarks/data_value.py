@@ -332,7 +332,7 @@ def collect(study: Study) -> dict:
         comparisons[f"{a} - {scale[0]}"] = compare(arms[a], arms[scale[0]])
     for smaller, larger in zip(scale[1:], scale[2:]):  # each size against the one below it
         comparisons[f"{larger} - {smaller}"] = compare(arms[larger], arms[smaller])
-    for a, b in (("auto", "as-is"), ("auto", "random"), ("truth", "as-is"), ("random", "as-is")):
+    for a, b in (("auto", "as-is"), ("auto", "random"), ("truth", "as-is"), ("truth", "random"), ("random", "as-is")):
         if f"curation-{a}" in arms and f"curation-{b}" in arms:
             comparisons[f"curation-{a} - curation-{b}"] = compare(arms[f"curation-{a}"], arms[f"curation-{b}"])
     for name, r in arms.items():
