@@ -44,13 +44,13 @@ CANDIDATES = {
     "cross-only": ("+ point tokens attend to the image only (the paper's blocks), more steps in the same time", 500,
                    f"{BASE_CONFIG}+cross_only", ("--lr-floor", "0.9", "--warmup-steps", "30", "--lr", "8e-4")),
     # warmup-30 cost more than lr-8e-4 and cross-only gained back: the last change on floor-0.9 alone
-    "floor-0.9+cross-only": ("floor-0.9 with point tokens attending to the image only (100 warm-up steps, peak 4e-4)",
+    "floor-0.9-cross-only": ("floor-0.9 with point tokens attending to the image only (100 warm-up steps, peak 4e-4)",
                              500, f"{BASE_CONFIG}+cross_only", ("--lr-floor", "0.9")),
 }
 BASELINE = "readme"
 # each change against the candidate it adds to, then each candidate against the README's recipe
-COMPARISONS = (*zip(list(CANDIDATES)[1:-1], CANDIDATES), ("floor-0.9+cross-only", "floor-0.9"),
-               ("floor-0.9+cross-only", "cross-only"), *((a, BASELINE) for a in list(CANDIDATES)[2:]))
+COMPARISONS = (*zip(list(CANDIDATES)[1:-1], CANDIDATES), ("floor-0.9-cross-only", "floor-0.9"),
+               ("floor-0.9-cross-only", "cross-only"), *((a, BASELINE) for a in list(CANDIDATES)[2:]))
 
 
 class TuningStudy(data_value.Study):
