@@ -9,6 +9,7 @@ import json
 import pytest
 
 from benchmarks import data_value, recipe_tuning
+from labeling_tool.compiler import VERSION_NAME
 from panolam.checkpoints import read_checkpoint
 from panolam.cli import _configs, build_parser
 
@@ -21,6 +22,7 @@ def test_candidates_are_training_options_whose_step_cost_only_their_config_sets(
         args.resume = False
         model, train = _configs(args)
         assert subjects >= 48 and model.name == config, name
+        assert VERSION_NAME.match(name) and VERSION_NAME.match(f"{name}-train-eval")  # its manifests' names
         shape = (model.replace(name=""), train.batch_size, train.views_per_sample, train.render_resolution)
         assert costs.setdefault(config, shape) == shape  # same config, same cost: equal steps are equal time
     for a, b in recipe_tuning.COMPARISONS:
