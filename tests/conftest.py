@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import sys
+import time
 import types
 from collections import OrderedDict
 from pathlib import Path
@@ -121,3 +122,15 @@ def repickle(stub, fn):
 def load_stub(path):
     with open(path, "rb") as f:
         return RestrictedUnpickler(f).load()["G_ema"]
+
+
+def group_ended(pgid: int, seconds: float) -> bool:
+    """Whether no process of process group ``pgid`` is left within ``seconds``."""
+    deadline = time.time() + seconds
+    while time.time() < deadline:
+        try:
+            os.killpg(pgid, 0)
+        except ProcessLookupError:
+            return True
+        time.sleep(0.1)
+    return False

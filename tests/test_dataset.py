@@ -16,7 +16,7 @@ from datagen.pipeline import run_sample
 from datagen.dataset import Dataset
 from datagen.dataset.shards import decode_exr, sidecar_path, tar_path
 from datagen.verify import verify_dataset
-from tests.conftest import all_files, tiny_spec
+from tests.conftest import all_files, group_ended, tiny_spec
 
 
 def test_same_command_gives_identical_bytes(tiny_dataset, tmp_path):
@@ -222,15 +222,7 @@ def test_sigterm_stops_the_workers_too_and_resume_completes(tmp_path):
     assert proc.returncode == 143 and err.strip() == "datagen sample: terminated; rerun with --resume to continue"
     complete = [i for i in range(16) if sidecar_path(out, i).exists()]
     assert len(complete) < 16, "terminated too late to test anything"
-    deadline = time.time() + 10
-    while time.time() < deadline:
-        try:
-            os.killpg(proc.pid, 0)  # raises once no process of the group is left
-        except ProcessLookupError:
-            break
-        time.sleep(0.1)
-    else:
-        pytest.fail("worker processes outlived the command")
+    assert group_ended(proc.pid, 10), "worker processes outlived the command"
     assert [i for i in range(16) if sidecar_path(out, i).exists()] == complete  # none wrote after the command ended
     rerun = subprocess.run(args + ["--resume"], env=env, capture_output=True, text=True, timeout=300)
     assert rerun.returncode == 0, rerun.stderr

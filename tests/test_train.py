@@ -26,7 +26,7 @@ from panolam.checkpoints import load_model, read_checkpoint, save_checkpoint
 from panolam.config import TrainConfig, preset
 from panolam.train import TrainingError, train
 from datagen.pipeline import run_sample
-from tests.conftest import curated_dataset, tiny_spec
+from tests.conftest import curated_dataset, group_ended, tiny_spec
 from tests.test_model import SMALL
 
 MODEL = preset("tiny", **SMALL)
@@ -391,15 +391,7 @@ def test_sigterm_stops_every_training_process_and_the_run_resumes(curated, tmp_p
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 143, err
     assert err.strip().splitlines()[-1] == "panolam train: terminated; the last checkpoint is kept; rerun with --resume"
-    deadline = time.time() + 20
-    while time.time() < deadline:
-        try:
-            os.killpg(proc.pid, 0)  # raises once no process of the group is left
-        except ProcessLookupError:
-            break
-        time.sleep(0.1)
-    else:
-        pytest.fail("a training process outlived the command")
+    assert group_ended(proc.pid, 20), "a training process outlived the command"
     step = read_checkpoint(run)["step"]
     resumed = subprocess.run([*base[:-2], "--time-limit", "0.001", "--resume", str(run)],  # one more step
                              capture_output=True, text=True, timeout=300)
