@@ -41,9 +41,10 @@ def run(command: str, *argv: str, cwd: Path) -> None:
 def measure(args) -> dict:
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
-    if not (out / "data" / "index.json").exists():
-        run("datagen", "sample", "--out", "data", "--subjects", str(args.subjects), "--resolution", "128",
-            "--defect-rate", "0", "--seed", str(args.seed), "--workers", "2", "--quiet", cwd=out)
+    # a dataset begun earlier is resumed (complete shards are skipped), so an interrupted generation is finished
+    run("datagen", "sample", "--out", "data", "--subjects", str(args.subjects), "--resolution", "128",
+        "--defect-rate", "0", "--seed", str(args.seed), "--workers", "2", "--quiet",
+        *(["--resume"] if (out / "data" / "index.json").exists() else []), cwd=out)
     (out / "labels").mkdir(exist_ok=True)
     run("label-tool", "compile", "data", "--labels", "labels", "--test-count", str(args.test_count),
         "--out", "manifest.json", cwd=out)

@@ -1,6 +1,7 @@
 """The recipe benchmark (benchmarks/panolam_recipe.py): its report shows the commands that ran."""
 from __future__ import annotations
 
+import argparse
 import json
 
 from benchmarks import panolam_recipe
@@ -15,3 +16,17 @@ def test_the_report_shows_the_training_options_that_were_passed():
     text = panolam_recipe.markdown(res)
     assert "datagen sample --out data --subjects 548 " in text and "--test-count 48 " in text
     assert "--time-limit 1200 --lr-floor 0.9\n" in text
+
+
+def test_a_dataset_begun_earlier_is_resumed_not_taken_as_it_is(tmp_path, monkeypatch):
+    ran = []
+    monkeypatch.setattr(panolam_recipe, "run", lambda command, *argv, cwd: ran.append((command, *argv)))
+    monkeypatch.setattr(panolam_recipe, "collect", lambda out, args: {})
+    args = argparse.Namespace(out=tmp_path, subjects=8, test_count=2, seed=3, time_limit=1, steps=None,
+                              train_options="")
+    panolam_recipe.measure(args)
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "index.json").write_text("{}")  # an interrupted generation leaves the index first
+    panolam_recipe.measure(args)
+    first, second = (r for r in ran if r[:2] == ("datagen", "sample"))
+    assert "--resume" not in first and "--resume" in second
