@@ -110,8 +110,7 @@ def collect(study: TuningStudy) -> dict:
     arms = data_value.carry(found, study.args.arms, old)
     comparisons = {f"{a} - {b}": data_value.compare(arms[a], arms[b]) for a, b in COMPARISONS if a in arms and b in arms}
     best = max(arms, key=lambda a: arms[a]["held_out"]["novel"]["psnr_fg"]) if arms else None
-    return {"machine": machine_info(), "seeds": {"held_out": study.held_out_seed, "pool": study.pool_seed},
-            "settings": dict(settings, candidates=study.args.arms),
+    return {"machine": machine_info(), "seeds": seeds, "settings": dict(settings, candidates=study.args.arms),
             "step_cpu_s": study.step_costs() or (old or {}).get("step_cpu_s", {}), "arms": arms, "comparisons": comparisons, "best": best}
 
 
