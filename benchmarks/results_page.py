@@ -186,7 +186,8 @@ def gui_latency(d: dict) -> list[str]:
 def panolam_recipe(d: dict) -> list[str]:
     f = d["figures"]
     model, untrained, template = f["this model"], f["baseline: untrained"], f["baseline: mean colour template"]
-    return [f"{d['subjects']} subjects (seed {d['seed']}, {d['test_count']} held out), `tiny` for "
+    options = f" `{d['train_options']}`" if d.get("train_options") else ""
+    return [f"{d['subjects']} subjects (seed {d['seed']}, {d['test_count']} held out), `tiny`{options} for "
             f"{d['time_limit_s']} s: {d['steps_done']} steps; last line `{d['last_step']}`.",
             f"Full-frame PSNR over {d['eval_subjects']} held-out subjects: {num(model['all']['psnr'])} dB, untrained "
             f"{num(untrained['all']['psnr'])} dB, mean-colour template {num(template['all']['psnr'])} dB.",
