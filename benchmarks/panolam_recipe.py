@@ -27,6 +27,7 @@ import sys
 from pathlib import Path
 
 from benchmarks.common import HERE, REPORTS, machine_info, table, write_report
+from datagen.files import atomic_write
 
 OUT = HERE / "out" / "recipe"
 GOAL_DB = 6.0  # full-frame PSNR gain over the untrained model the recipe should reach in 20 minutes
@@ -39,9 +40,14 @@ def run(command: str, *argv: str, cwd: Path) -> None:
     subprocess.run([str(Path(sys.executable).parent / command), *argv], cwd=cwd, check=True)
 
 
+SETTINGS = ("seed", "subjects", "test_count", "time_limit", "steps", "train_options")
+
+
 def measure(args) -> dict:
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
+    # what this run is, so that --report-only reports it whatever the defaults are then
+    atomic_write(out / "settings.json", json.dumps({k: getattr(args, k) for k in SETTINGS}).encode())
     # a dataset begun earlier is resumed (complete shards are skipped), so an interrupted generation is finished
     run("datagen", "sample", "--out", "data", "--subjects", str(args.subjects), "--resolution", "128",
         "--defect-rate", "0", "--seed", str(args.seed), "--workers", "2", "--quiet",
@@ -63,7 +69,10 @@ def measure(args) -> dict:
 
 
 def collect(out: Path, args) -> dict:
-    """The figures of a finished run in ``out`` (its eval.json, train.log and load.json)."""
+    """The figures of a finished run in ``out`` (its eval.json, train.log, load.json and settings.json;
+    a run from before settings.json is taken to have the settings in ``args``)."""
+    if (out / "settings.json").exists():
+        args = argparse.Namespace(**json.loads((out / "settings.json").read_text()))
     ev = json.loads((out / "runs" / "r1" / "eval-test" / "eval.json").read_text())
     steps = [line for line in (out / "runs" / "r1" / "train.log").read_text().splitlines() if line.startswith("step ")]
     load = json.loads((out / "load.json").read_text()) if (out / "load.json").exists() else {}

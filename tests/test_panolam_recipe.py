@@ -31,3 +31,25 @@ def test_a_dataset_begun_earlier_is_resumed_not_taken_as_it_is(tmp_path, monkeyp
     panolam_recipe.measure(args)
     first, second = (r for r in ran if r[:2] == ("datagen", "sample"))
     assert "--resume" not in first and "--resume" in second
+
+
+def test_the_report_of_a_finished_run_names_the_settings_it_ran_with(tmp_path, monkeypatch):
+    monkeypatch.setattr(panolam_recipe, "run", lambda command, *argv, cwd: None)
+    ran_with = argparse.Namespace(out=tmp_path, subjects=8, test_count=2, seed=3, time_limit=60, steps=None,
+                                  train_options="--lr-floor 0.5")
+    real_collect = panolam_recipe.collect
+    monkeypatch.setattr(panolam_recipe, "collect", lambda out, args: {})
+    panolam_recipe.measure(ran_with)
+    run = tmp_path / "runs" / "r1"
+    (run / "eval-test").mkdir(parents=True)
+    view = {m: 10.0 for m in ("psnr", "psnr_fg", "ssim", "ssim_fg")}
+    scores = {"per_view": {"all": view, "novel": view}}
+    (run / "eval-test" / "eval.json").write_text(json.dumps(
+        {**scores, "baselines": {"untrained": scores}, "subjects": 2, "reconstruct_s_median": 0.1}))
+    (run / "train.log").write_text("step 1: loss 1\nstep 2: loss 1\n")
+    today = argparse.Namespace(out=tmp_path, subjects=548, test_count=48, seed=61043, time_limit=1200, steps=None,
+                               train_options="--lr-floor 0.9")  # --report-only with other defaults
+    res = real_collect(tmp_path, today)
+    assert (res["seed"], res["subjects"], res["test_count"], res["time_limit_s"], res["train_options"]) == \
+        (3, 8, 2, 60, "--lr-floor 0.5")
+    assert res["steps_done"] == 2
