@@ -9,7 +9,7 @@ what do speed and accuracy trade?
 
 The learning goal of the current recipe (novel-view foreground PSNR 5 dB over the mean-colour
 template within 2 hours of training on 2 cores) is measured by the recipe itself run for two hours,
-``python -m benchmarks.panolam_recipe --time-limit 7200 --steps 5000 --report panolam_recipe_2h``;
+``python -m benchmarks.panolam_recipe --time-limit 7200 --steps 100000 --report panolam_recipe_2h``;
 this study compares the paper's ablations and the speed-accuracy trade-offs.
 
 Phases (each skips what is already on disk, so an interrupted study resumes; training processes can
