@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import shlex
 import shutil
 import subprocess
@@ -81,10 +82,16 @@ def collect(out: Path, args) -> dict:
                       for view in ("all", "novel")} for name, r in models.items()}
     return {"machine": machine_info(), "seed": args.seed, "subjects": args.subjects, "test_count": args.test_count,
             "time_limit_s": args.time_limit, "steps": args.steps, "train_options": args.train_options,
-            "steps_done": len(steps),
+            "steps_done": len(steps), "train_psnr_last_200": _mean_batch_psnr(steps[-200:]),
             "last_step": steps[-1] if steps else None,
             "load_average": load, "figures": figures, "eval_subjects": ev["subjects"],
             "reconstruct_s_median": ev["reconstruct_s_median"]}
+
+
+def _mean_batch_psnr(step_lines: list[str]) -> float | None:
+    """The mean training-batch PSNR (dB, the renders at the training resolution) of train.log's step lines."""
+    values = [float(m.group(1)) for line in step_lines if (m := re.search(r"PSNR ([-\d.]+) dB", line))]
+    return sum(values) / len(values) if values else None
 
 
 def _duration(seconds: float) -> str:
@@ -122,7 +129,10 @@ def markdown(res: dict) -> str:
         "panolam eval --data data --manifest manifest.json --split test --ckpt runs/r1",
         "```", "",
         f"Training did {res['steps_done']} steps in the time limit (at most {res.get('steps') or 2000:,}; the "
-        f"learning rate's decay is fitted to the time limit; `{res['last_step']}`). Evaluated on "
+        f"learning rate's decay is fitted to the time limit; `{res['last_step']}`)"
+        + (f"; its training batches scored {res['train_psnr_last_200']:.2f} dB over the last 200 steps (full "
+           "frame at the training resolution)" if res.get("train_psnr_last_200") is not None else "")
+        + ". Evaluated on "
         f"{res['eval_subjects']} held-out subjects: the front view in, the front, left, back and right views out at "
         "128 px; *novel* is left, back and right; fg is the foreground "
         "(target or render alpha >= 0.5).", "",

@@ -46,10 +46,12 @@ def test_the_report_of_a_finished_run_names_the_settings_it_ran_with(tmp_path, m
     scores = {"per_view": {"all": view, "novel": view}}
     (run / "eval-test" / "eval.json").write_text(json.dumps(
         {**scores, "baselines": {"untrained": scores}, "subjects": 2, "reconstruct_s_median": 0.1}))
-    (run / "train.log").write_text("step 1: loss 1\nstep 2: loss 1\n")
+    (run / "train.log").write_text("step 1: loss 1, PSNR 12.00 dB\nstep 2: loss 1, PSNR 13.00 dB\n")
     today = argparse.Namespace(out=tmp_path, subjects=548, test_count=48, seed=61043, time_limit=1200, steps=None,
                                train_options="--lr-floor 0.9")  # --report-only with other defaults
     res = real_collect(tmp_path, today)
     assert (res["seed"], res["subjects"], res["test_count"], res["time_limit_s"], res["train_options"]) == \
         (3, 8, 2, 60, "--lr-floor 0.5")
-    assert res["steps_done"] == 2
+    assert res["steps_done"] == 2 and res["train_psnr_last_200"] == 12.5
+    assert "training batches scored 12.50 dB over the last 200 steps" in panolam_recipe.markdown(
+        {**res, "figures": {**res["figures"], "baseline: mean colour template": res["figures"]["baseline: untrained"]}})
